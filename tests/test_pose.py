@@ -1,0 +1,88 @@
+import json
+import math
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from dpcn.pose import Pose, matrix_to_pose, pose_to_matrix, sample_poses, warp_by_pose, wrap_angle
+
+from .conftest import cv2_warp, photo
+
+
+@pytest.mark.parametrize("size", [(256, 256), (120, 200), (97, 131)])
+def test_pose_to_matrix_matches_opencv(size):
+    h, w = size
+    poses = [(0.0, 0.0, 0.0, 1.0), (12.5, -7.25, 33.0, 1.1), (-40.0, 3.0, -179.5, 0.8), (5.0, 5.0, 180.0, 1.2)]
+    for tx, ty, angle, scale in poses:
+        expected = cv2.getRotationMatrix2D((w / 2, h / 2), angle, scale)
+        expected[0, 2] += tx
+        expected[1, 2] += ty
+        got = pose_to_matrix(*(torch.tensor([v], dtype=torch.float64) for v in (tx, ty, angle, scale)), size=size)
+        np.testing.assert_allclose(got[0].numpy(), expected, atol=1e-9)
+
+
+def test_matrix_to_pose_round_trip():
+    pose = Pose(
+        torch.tensor([3.0, -20.0]), torch.tensor([1.5, 44.0]), torch.tensor([-120.0, 179.0]), torch.tensor([0.9, 1.15])
+    )
+    back = matrix_to_pose(pose_to_matrix(pose.tx, pose.ty, pose.angle, pose.scale, (64, 80)), (64, 80))
+    torch.testing.assert_close(back.as_tensor(), pose.as_tensor(), atol=1e-4, rtol=1e-5)
+
+
+@pytest.mark.parametrize("size", [(256, 256), (101, 150)])
+def test_warp_by_pose_matches_cv2_warp_affine(size):
+    template = photo("astronaut", size)
+    pose = (9.3, -14.1, 57.0, 1.13)
+    expected = cv2_warp(template, *pose)
+    got = warp_by_pose(torch.from_numpy(template)[None, None], Pose.from_tensor(torch.tensor(pose)))
+    interior = (slice(4, -4), slice(4, -4))
+    assert np.abs(got[0, 0].numpy() - expected)[interior].max() < 1e-3
+
+
+def test_wrap_angle_range():
+    angles = torch.tensor([-540.0, -180.0, -179.0, 0.0, 180.0, 181.0, 359.0, 720.0])
+    wrapped = wrap_angle(angles)
+    assert torch.all(wrapped > -180) and torch.all(wrapped <= 180)
+    torch.testing.assert_close(wrapped, torch.tensor([180.0, 180.0, -179.0, 0.0, 180.0, -179.0, -1.0, 0.0]))
+    torch.testing.assert_close(wrap_angle(torch.tensor([95.0, -90.0]), period=180.0), torch.tensor([-85.0, 90.0]))
+
+
+def test_pose_container_api():
+    pose = Pose.from_tensor(
+        torch.tensor([[1.0, 2.0, 30.0, 1.1], [4.0, 5.0, -60.0, 0.9]]), confidence=torch.tensor([0.5, 0.2])
+    )
+    assert len(pose) == 2
+    rows = pose.tolist()
+    assert rows[1] == pytest.approx({"tx": 4.0, "ty": 5.0, "angle": -60.0, "scale": 0.9, "confidence": 0.2})
+    single = pose[0]
+    assert single.to_dict()["angle"] == pytest.approx(30.0)
+    assert json.loads(single.to_json())["tx"] == pytest.approx(1.0)
+    assert len(json.loads(pose.to_json())) == 2
+    assert Pose.from_dict(single.to_dict()).to_dict() == pytest.approx(single.to_dict())
+    with pytest.raises(ValueError, match="batch of one"):
+        pose.to_dict()
+    with pytest.raises(ValueError, match="different batch sizes"):
+        Pose(torch.zeros(2), torch.zeros(3), torch.zeros(2), torch.ones(2))
+    with pytest.raises(ValueError, match=r"\(B, 4\)"):
+        Pose.from_tensor(torch.zeros(2, 3))
+
+
+def test_sample_poses_ranges_and_seed():
+    g = torch.Generator().manual_seed(1)
+    poses = sample_poses(2000, g, translation=50.0, rotation=(-180.0, 180.0), scale=(0.8, 1.2))
+    assert poses.tx.abs().max() <= 50 and poses.ty.abs().max() <= 50
+    assert poses.scale.min() >= 0.8 and poses.scale.max() <= 1.2
+    assert poses.angle.min() > -180 and poses.angle.max() <= 180
+    assert poses.angle.min() < -170 and poses.angle.max() > 170  # covers the full turn
+    again = sample_poses(2000, torch.Generator().manual_seed(1))
+    torch.testing.assert_close(poses.as_tensor(), again.as_tensor())
+    with pytest.raises(ValueError, match="invalid pose ranges"):
+        sample_poses(3, scale=(1.2, 0.8))
+
+
+def test_pose_matrix_is_differentiable():
+    params = torch.tensor([1.0, 2.0, 30.0, 1.1], dtype=torch.float64, requires_grad=True)
+    torch.autograd.gradcheck(lambda p: pose_to_matrix(p[0:1], p[1:2], p[2:3], p[3:4], (32, 48)), (params,))
+    assert math.isfinite(float(pose_to_matrix(*params.detach()[:, None], (8, 8)).sum()))
