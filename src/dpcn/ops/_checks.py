@@ -1,0 +1,44 @@
+"""Input validation shared by the ops: clear errors instead of failures deep inside torch."""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+
+def check_image(image: object, name: str = "image", min_size: int = 2) -> Tensor:
+    """Check that ``image`` is a finite floating ``(B, C, H, W)`` tensor and return it."""
+    if not isinstance(image, Tensor):
+        raise TypeError(f"{name} must be a torch.Tensor of shape (B, C, H, W), got {type(image).__name__}")
+    if image.ndim != 4:
+        raise ValueError(f"{name} must have shape (B, C, H, W), got {tuple(image.shape)}")
+    if not image.is_floating_point():
+        raise TypeError(f"{name} must be a floating-point tensor, got {image.dtype}")
+    if image.shape[0] == 0 or image.shape[1] == 0:
+        raise ValueError(f"{name} is empty: shape {tuple(image.shape)}")
+    if image.shape[-2] < min_size or image.shape[-1] < min_size:
+        raise ValueError(
+            f"{name} is too small: {image.shape[-2]}x{image.shape[-1]} pixels, need at least {min_size}x{min_size}"
+        )
+    if not torch.isfinite(image).all():
+        raise ValueError(f"{name} contains NaN or infinite values")
+    return image
+
+
+def check_pair(a: Tensor, b: Tensor, names: tuple[str, str] = ("template", "source"), min_size: int = 2) -> None:
+    """Check two image batches for shape, dtype and device agreement."""
+    check_image(a, names[0], min_size)
+    check_image(b, names[1], min_size)
+    if a.shape[-2:] != b.shape[-2:]:
+        raise ValueError(
+            f"{names[0]} and {names[1]} must have the same size, got "
+            f"{a.shape[-2]}x{a.shape[-1]} and {b.shape[-2]}x{b.shape[-1]}"
+        )
+    if a.shape[0] != b.shape[0]:
+        raise ValueError(f"{names[0]} and {names[1]} have different batch sizes: {a.shape[0]} and {b.shape[0]}")
+    if a.shape[1] != b.shape[1]:
+        raise ValueError(f"{names[0]} and {names[1]} have different channel counts: {a.shape[1]} and {b.shape[1]}")
+    if a.dtype != b.dtype or a.device != b.device:
+        raise ValueError(
+            f"{names[0]} and {names[1]} must share dtype and device, got {a.dtype}/{a.device} and {b.dtype}/{b.device}"
+        )
