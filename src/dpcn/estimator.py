@@ -1,0 +1,286 @@
+"""The two-stage Fourier-Mellin pose estimator, differentiable end to end.
+
+Stage 1: magnitude spectra -> log-polar maps -> phase correlation -> rotation and scale
+(modulo 180 degrees). Stage 2: the source is un-rotated/un-scaled by that estimate (kornia
+warp), a second phase correlation gives the translation; both the angle and the angle + 180
+degrees are tried there and the stronger peak wins, so the full 360 degrees are recovered.
+
+The stages take arbitrary ``(B, C, H, W)`` inputs, so the same code runs on raw pixels (the
+classical estimator, :class:`PhaseCorrelationEstimator`) and on learned feature maps (DPCN).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import kornia
+import torch
+from torch import Tensor, nn
+
+from .ops._checks import check_pair
+from .ops.correlation import correlation_surface, cross_power_spectrum
+from .ops.logpolar import log_polar, log_polar_grid, log_radius_step
+from .ops.soft_argmax import soft_argmax2d
+from .ops.spectrum import apodization_window, magnitude_spectrum
+from .pose import Pose, pose_to_matrix, wrap_angle
+
+__all__ = [
+    "RotationScale",
+    "Translation",
+    "estimate_rotation_scale",
+    "unwarp_rotation_scale",
+    "estimate_translation",
+    "PhaseCorrelationEstimator",
+]
+
+
+@dataclass
+class RotationScale:
+    """Output of :func:`estimate_rotation_scale` (all ``(B,)`` unless noted).
+
+    ``angle`` is in ``[-90, 90)`` degrees: the magnitude spectrum cannot tell ``angle`` from
+    ``angle + 180``. ``surface`` is the ``(B, n_angles, n_radii)`` log-polar correlation.
+    """
+
+    angle: Tensor
+    scale: Tensor
+    confidence: Tensor
+    surface: Tensor
+    log_polar_template: Tensor
+    log_polar_source: Tensor
+
+
+@dataclass
+class Translation:
+    """Output of :func:`estimate_translation` (all ``(B,)`` unless noted).
+
+    ``angle`` is the full-turn angle (the stage-1 angle or that plus 180 degrees, whichever
+    correlates better); ``surface`` is the ``(B, H, W)`` correlation of the winner.
+    """
+
+    tx: Tensor
+    ty: Tensor
+    angle: Tensor
+    confidence: Tensor
+    surface: Tensor
+
+
+def _scale_mask(n_radii: int, step: float, scale_range: tuple[float, float] | None, device, dtype) -> Tensor | None:
+    """Additive ``(1, 1, n_radii)`` mask excluding log-radius shifts outside ``scale_range``."""
+    if scale_range is None:
+        return None
+    lo, hi = scale_range
+    if not 0 < lo <= 1 <= hi:
+        raise ValueError(f"scale_range must satisfy 0 < low <= 1 <= high, got {scale_range}")
+    shifts = torch.arange(n_radii, device=device, dtype=dtype) - n_radii // 2
+    scales_log = -shifts * step  # column -> ln(scale)
+    ok = (scales_log >= math.log(lo) - step) & (scales_log <= math.log(hi) + step)
+    # Finite (correlation values are <= 1): -inf would turn into NaN gradients downstream.
+    return torch.where(ok, 0.0, -1.0e4).to(dtype)[None, None, :]
+
+
+def estimate_rotation_scale(
+    template: Tensor,
+    source: Tensor,
+    n_angles: int = 256,
+    n_radii: int = 256,
+    min_radius: float = 0.03,
+    max_radius: float = 0.95,
+    highpass: bool = True,
+    sigma: float = 2.0,
+    temperature: float | Tensor = 0.1,
+    window: int | None = 3,
+    scale_range: tuple[float, float] | None = (0.5, 2.0),
+    relative: bool = True,
+) -> RotationScale:
+    """Rotation (mod 180 degrees) and scale of ``source`` relative to ``template``.
+
+    Args:
+        template, source: ``(B, C, H, W)`` images or feature maps.
+        n_angles, n_radii, min_radius, max_radius: log-polar grid (see
+            :func:`dpcn.ops.log_polar`); ``180 / n_angles`` degrees per row.
+        highpass: apply the Reddy high-pass filter to the magnitude spectra.
+        sigma, temperature, window, relative: correlation blur and soft-argmax settings
+            (:func:`dpcn.ops.phase_correlation`, :func:`dpcn.ops.soft_argmax2d`).
+        scale_range: only scales in this range are searched (``None``: all).
+
+    Returns:
+        :class:`RotationScale` with ``angle`` in ``[-90, 90)`` degrees and ``scale``.
+    """
+    check_pair(template, source)
+    # Both spectra in one batch: half spectra (point symmetry) sampled on angles [-90, 90).
+    spectra = magnitude_spectrum(torch.cat([template, source]), window=True, highpass=highpass, half=True)
+    maps = log_polar(spectra, n_angles, n_radii, min_radius, max_radius, half=True, width=template.shape[-1])
+    lp_t, lp_s = maps.chunk(2)
+    cross = cross_power_spectrum(lp_t, lp_s)
+    surface = correlation_surface(cross, (n_angles, n_radii), sigma=sigma)
+    step = log_radius_step(n_radii, min_radius, max_radius)
+    mask = _scale_mask(n_radii, step, scale_range, surface.device, surface.dtype)
+    scored = surface if mask is None else surface + mask
+    peak = soft_argmax2d(scored, temperature, window=window, circular=(True, False), relative=relative)
+    # A rotation by +a shifts the source's log-polar map by -a rows; a scale s by -ln(s) columns.
+    d_angle = peak[:, 0] - n_angles // 2
+    d_radius = peak[:, 1] - n_radii // 2
+    angle = wrap_angle(-d_angle * (180.0 / n_angles), period=180.0)
+    angle = torch.where(angle >= 90.0, angle - 180.0, angle)  # [-90, 90)
+    scale = torch.exp(-d_radius * step)
+    confidence = scored.flatten(1).max(dim=1).values.clamp(0.0, 1.0)
+    return RotationScale(angle, scale, confidence, surface, lp_t, lp_s)
+
+
+def unwarp_rotation_scale(source: Tensor, angle: Tensor, scale: Tensor) -> Tensor:
+    """Undo a rotation by ``angle`` degrees and a scaling by ``scale`` about the image centre.
+
+    ``(B, C, H, W) -> (B, C, H, W)``; kornia bilinear warp, zeros outside, differentiable in
+    the image, the angle and the scale. If ``source`` is the template warped by a pose with
+    this angle and scale, the result is the template shifted by ``A^-1 t`` (``A`` the pose's
+    2x2 linear part, ``t`` its translation).
+    """
+    _, _, height, width = source.shape
+    zeros = torch.zeros_like(angle)
+    inverse = pose_to_matrix(zeros, zeros, -angle, 1.0 / scale, (height, width))
+    return kornia.geometry.transform.warp_affine(
+        source, inverse.to(source.dtype), (height, width), mode="bilinear", padding_mode="zeros", align_corners=True
+    )
+
+
+def estimate_translation(
+    template: Tensor,
+    unwarped_source: Tensor,
+    angle: Tensor,
+    scale: Tensor,
+    resolve_180: bool = True,
+    apodize: bool = True,
+    sigma: float = 2.0,
+    temperature: float | Tensor = 0.1,
+    window: int | None = 3,
+    relative: bool = True,
+) -> Translation:
+    """Translation of the source, from the template and the un-rotated/un-scaled source.
+
+    Args:
+        template: ``(B, C, H, W)`` template images or features.
+        unwarped_source: ``(B, C, H, W)`` source after :func:`unwarp_rotation_scale` with
+            ``angle`` and ``scale`` (or features of it).
+        angle, scale: ``(B,)`` the stage-1 estimate used for the un-warp.
+        resolve_180: also try ``angle + 180``: rotating the un-warped source by half a turn
+            about the centre conjugates its spectrum, so this costs one extra inverse DFT,
+            no warp and no extra features.
+        apodize: Hann-window both inputs first.
+
+    Returns:
+        :class:`Translation` in the project's pose convention.
+    """
+    check_pair(template, unwarped_source, ("template", "unwarped_source"))
+    _, _, height, width = template.shape
+    a, b = template, unwarped_source
+    a = a - a.mean(dim=(-2, -1), keepdim=True)
+    b = b - b.mean(dim=(-2, -1), keepdim=True)
+    if apodize:
+        win = apodization_window(height, width, template.device, template.dtype)
+        a, b = a * win, b * win
+    fa, fb = torch.fft.rfft2(a), torch.fft.rfft2(b)
+    cross = (fb * fa.conj()).sum(dim=1)
+    surface = correlation_surface(cross, (height, width), sigma=sigma)
+    angle = angle.to(surface.dtype)
+    if resolve_180:
+        # The half-turn hypothesis: b rotated by 180 degrees about (W/2, H/2) is b(-p)
+        # circularly, whose DFT is conj(B); no second warp, DFT or feature pass is needed.
+        mirrored = correlation_surface((fb * fa).conj().sum(dim=1), (height, width), sigma=sigma)
+        take_mirror = mirrored.flatten(1).max(dim=1).values > surface.flatten(1).max(dim=1).values
+        surface = torch.where(take_mirror[:, None, None], mirrored, surface)
+        angle = torch.where(take_mirror, angle + 180.0, angle)
+    peak = soft_argmax2d(surface, temperature, window=window, circular=(True, True), relative=relative)
+    dy = torch.remainder(peak[:, 0] - height // 2 + height / 2, height) - height / 2
+    dx = torch.remainder(peak[:, 1] - width // 2 + width / 2, width) - width / 2
+    # t = A d with A = s [[cos, sin], [-sin, cos]] (the cv2 linear part of the pose); for the
+    # half-turn hypothesis A changes sign with the angle, matching the mirrored frame of d.
+    theta = torch.deg2rad(angle)
+    scale = scale.to(surface.dtype)
+    tx = scale * (torch.cos(theta) * dx + torch.sin(theta) * dy)
+    ty = scale * (-torch.sin(theta) * dx + torch.cos(theta) * dy)
+    confidence = surface.flatten(1).max(dim=1).values.clamp(0.0, 1.0)
+    return Translation(tx, ty, wrap_angle(angle), confidence, surface)
+
+
+class PhaseCorrelationEstimator(nn.Module):
+    """Classical Fourier-Mellin registration as a differentiable module.
+
+    ``forward(template, source)`` with ``(B, C, H, W)`` tensors returns a :class:`Pose` such
+    that ``source ~= warp(template, pose)`` in the project's convention. Runs on the inputs'
+    device and dtype; gradients flow from the pose to both images.
+
+    Args:
+        n_angles, n_radii, min_radius, max_radius: log-polar grid of stage 1.
+        highpass: Reddy high-pass on the magnitude spectra.
+        sigma: Gaussian blur (pixels) of the translation correlation surface.
+        rotation_sigma, rotation_temperature: the same for the log-polar surface of stage 1
+            (default: ``sigma`` and ``temperature``). Less blur there keeps the close
+            spectral peaks of periodic textures (bricks, tiles, crop rows) apart.
+        temperature: soft-argmax temperature, relative to each surface's peak height.
+        window: soft-argmax neighbourhood half-size (``None``: whole surface).
+        scale_range: searched scales.
+        resolve_180: recover the full 360 degrees (else angles are in ``[-90, 90)``).
+        refine: extra stage-1 passes on the un-warped source; each removes the residual
+            rotation/scale left by the grid resolution.
+    """
+
+    def __init__(
+        self,
+        n_angles: int = 256,
+        n_radii: int = 256,
+        min_radius: float = 0.03,
+        max_radius: float = 0.95,
+        highpass: bool = True,
+        sigma: float = 2.0,
+        temperature: float = 0.1,
+        window: int | None = 3,
+        rotation_sigma: float | None = 1.0,
+        rotation_temperature: float | None = 0.07,
+        scale_range: tuple[float, float] | None = (0.5, 2.0),
+        resolve_180: bool = True,
+        refine: int = 0,
+    ) -> None:
+        super().__init__()
+        log_polar_grid(8, 8, n_angles, n_radii, min_radius, max_radius)  # validates the grid
+        rotation_sigma = sigma if rotation_sigma is None else rotation_sigma
+        rotation_temperature = temperature if rotation_temperature is None else rotation_temperature
+        if sigma < 0 or rotation_sigma < 0:
+            raise ValueError(f"sigma and rotation_sigma must be >= 0 pixels, got {sigma} and {rotation_sigma}")
+        if not (temperature > 0 and rotation_temperature > 0):
+            raise ValueError(f"temperatures must be positive, got {temperature} and {rotation_temperature}")
+        if window is not None and window < 0:
+            raise ValueError(f"window must be >= 0 or None, got {window}")
+        if scale_range is not None:
+            _scale_mask(4, 1.0, tuple(scale_range), "cpu", torch.float32)  # validates the range
+        self.rotation_scale_options = dict(
+            n_angles=n_angles,
+            n_radii=n_radii,
+            min_radius=min_radius,
+            max_radius=max_radius,
+            highpass=highpass,
+            sigma=rotation_sigma,
+            temperature=rotation_temperature,
+            window=window,
+            scale_range=None if scale_range is None else tuple(scale_range),
+            relative=True,
+        )
+        self.translation_options = dict(
+            resolve_180=resolve_180, sigma=sigma, temperature=temperature, window=window, relative=True
+        )
+        if refine < 0:
+            raise ValueError(f"refine must be >= 0, got {refine}")
+        self.refine = refine
+
+    def forward(self, template: Tensor, source: Tensor) -> Pose:
+        check_pair(template, source, min_size=8)
+        rs = estimate_rotation_scale(template, source, **self.rotation_scale_options)
+        angle, scale = rs.angle, rs.scale
+        unwarped = unwarp_rotation_scale(source, angle, scale)
+        for _ in range(self.refine):
+            residual = estimate_rotation_scale(template, unwarped, **self.rotation_scale_options)
+            angle, scale = angle + residual.angle, scale * residual.scale
+            unwarped = unwarp_rotation_scale(source, angle, scale)
+        tr = estimate_translation(template, unwarped, angle, scale, **self.translation_options)
+        return Pose(tr.tx, tr.ty, tr.angle, scale, tr.confidence)

@@ -1,0 +1,173 @@
+"""The two-stage estimator against OpenCV-made poses on real photographs."""
+
+import numpy as np
+import pytest
+import torch
+from torch.autograd import gradcheck
+
+from dpcn.estimator import (
+    PhaseCorrelationEstimator,
+    estimate_rotation_scale,
+    estimate_translation,
+    unwarp_rotation_scale,
+)
+from dpcn.pose import Pose, warp_by_pose
+
+from .conftest import angle_error, cv2_warp, photo
+
+# (photo, tx, ty, angle, scale): the full turn, both scale ends, large shifts.
+CASES = [
+    ("camera", 12.3, -7.8, 33.0, 1.1),
+    ("astronaut", -45.0, 30.5, 179.3, 0.85),
+    ("coffee", 20.0, 44.0, -178.0, 1.18),
+    ("chelsea", -3.3, -48.0, -91.0, 0.8),
+    ("rocket", 40.2, 10.1, 95.5, 1.2),
+    ("immunohistochemistry", 0.0, 0.0, -135.0, 1.0),
+    ("gravel", -25.5, 15.25, 5.0, 0.92),
+]
+
+
+def recover(template, source, **kw):
+    t = torch.from_numpy(template)[None, None]
+    s = torch.from_numpy(source)[None, None]
+    return PhaseCorrelationEstimator(**kw)(t, s)
+
+
+@pytest.mark.parametrize("name,tx,ty,angle,scale", CASES)
+def test_recovers_opencv_pose_on_photos(name, tx, ty, angle, scale):
+    template = photo(name)
+    pose = recover(template, cv2_warp(template, tx, ty, angle, scale))
+    assert float(pose.tx) == pytest.approx(tx, abs=0.5)
+    assert float(pose.ty) == pytest.approx(ty, abs=0.5)
+    assert angle_error(pose.angle, angle) < 0.3
+    assert float(pose.scale) == pytest.approx(scale, rel=0.006)
+    assert 0.05 < float(pose.confidence) <= 1.0
+
+
+@pytest.mark.parametrize("size", [(200, 300), (191, 257)])
+def test_non_square_and_odd_sizes(size):
+    template = photo("astronaut", size)
+    truth = (14.0, -9.0, -120.0, 1.07)
+    pose = recover(template, cv2_warp(template, *truth))
+    assert float(pose.tx) == pytest.approx(truth[0], abs=0.6)
+    assert float(pose.ty) == pytest.approx(truth[1], abs=0.6)
+    assert angle_error(pose.angle, truth[2]) < 0.4
+    assert float(pose.scale) == pytest.approx(truth[3], rel=0.008)
+
+
+def test_colour_channels_are_pooled():
+    template = photo("coffee", colour=True)
+    source = cv2_warp(template, 10.0, 5.0, 60.0, 0.9)
+    t = torch.from_numpy(template).permute(2, 0, 1)[None]
+    s = torch.from_numpy(source).permute(2, 0, 1)[None]
+    pose = PhaseCorrelationEstimator()(t, s)
+    assert angle_error(pose.angle, 60.0) < 0.3 and float(pose.tx) == pytest.approx(10.0, abs=0.5)
+
+
+def test_batched_equals_one_by_one():
+    truths = [(5.0, 6.0, 10.0, 1.0), (-20.0, 3.0, -150.0, 0.9), (30.0, -30.0, 100.0, 1.15)]
+    names = ["camera", "astronaut", "rocket"]
+    templates = np.stack([photo(n) for n in names])[:, None]
+    sources = np.stack([cv2_warp(photo(n), *p) for n, p in zip(names, truths, strict=True)])[:, None]
+    est = PhaseCorrelationEstimator()
+    batched = est(torch.from_numpy(templates), torch.from_numpy(sources)).as_tensor()
+    single = torch.cat(
+        [
+            est(torch.from_numpy(templates[i : i + 1]), torch.from_numpy(sources[i : i + 1])).as_tensor()
+            for i in range(3)
+        ]
+    )
+    torch.testing.assert_close(batched, single, atol=1e-3, rtol=1e-4)
+    for row, truth in zip(batched, truths, strict=True):
+        assert angle_error(row[2], truth[2]) < 0.3
+
+
+def test_half_turn_ambiguity_resolved_both_ways():
+    template = photo("camera")
+    for angle in (30.0, 30.0 + 180.0 - 360.0):
+        pose = recover(template, cv2_warp(template, 8.0, -4.0, angle, 1.0))
+        assert angle_error(pose.angle, angle) < 0.3
+    limited = recover(template, cv2_warp(template, 0.0, 0.0, 150.0, 1.0), resolve_180=False)
+    assert angle_error(limited.angle, -30.0) < 0.3  # same axis, half-turn unresolved
+
+
+def test_dtype_and_device_follow_input():
+    template = torch.from_numpy(photo("camera", (64, 64))).double()[None, None]
+    source = warp_by_pose(template, Pose.from_tensor(torch.tensor([3.0, 2.0, 20.0, 1.0], dtype=torch.float64)))
+    pose = PhaseCorrelationEstimator(n_angles=64, n_radii=64)(template, source)
+    assert pose.tx.dtype == torch.float64 and pose.tx.device == template.device
+
+
+def test_unrelated_images_have_low_confidence():
+    template = photo("camera")
+    match = recover(template, cv2_warp(template, 5.0, 5.0, 40.0, 1.0))
+    unrelated = recover(template, photo("coffee"))
+    assert float(match.confidence) > 3 * float(unrelated.confidence)
+
+
+def test_constant_images_give_finite_output():
+    flat = torch.full((1, 1, 32, 32), 0.5, requires_grad=True)
+    pose = PhaseCorrelationEstimator(n_angles=32, n_radii=32)(flat, flat * 1.0)
+    total = pose.as_tensor().sum()
+    total.backward()
+    assert torch.isfinite(pose.as_tensor()).all() and torch.isfinite(flat.grad).all()
+
+
+def test_rejects_bad_options_and_inputs():
+    with pytest.raises(ValueError, match="temperatures must be positive"):
+        PhaseCorrelationEstimator(temperature=0.0)
+    with pytest.raises(ValueError, match="scale_range"):
+        PhaseCorrelationEstimator(scale_range=(1.5, 2.0))
+    with pytest.raises(ValueError, match="at least 2"):
+        PhaseCorrelationEstimator(n_angles=1)
+    est = PhaseCorrelationEstimator()
+    with pytest.raises(ValueError, match="same size"):
+        est(torch.rand(1, 1, 32, 32), torch.rand(1, 1, 32, 40))
+    with pytest.raises(ValueError, match="NaN"):
+        est(torch.rand(1, 1, 32, 32), torch.full((1, 1, 32, 32), float("inf")))
+
+
+def test_gradients_reach_both_images_through_every_stage():
+    template = torch.from_numpy(photo("camera", (48, 48))).double()[None, None].requires_grad_()
+    source = warp_by_pose(
+        template.detach(), Pose.from_tensor(torch.tensor([2.0, -1.0, 25.0, 1.05], dtype=torch.float64))
+    )
+    source.requires_grad_()
+    pose = PhaseCorrelationEstimator(n_angles=48, n_radii=48)(template, source)
+    for value in (pose.tx, pose.ty, pose.angle, pose.scale):
+        template.grad = source.grad = None
+        value.sum().backward(retain_graph=True)
+        assert template.grad.abs().sum() > 0 and source.grad.abs().sum() > 0
+
+
+def _small_images():
+    torch.manual_seed(3)
+    base = torch.nn.functional.avg_pool2d(torch.rand(1, 1, 20, 20, dtype=torch.float64), 3, 1, 1)
+    moved = warp_by_pose(base, Pose.from_tensor(torch.tensor([1.3, -0.7, 12.0, 1.05], dtype=torch.float64)))
+    return base.requires_grad_(), moved.requires_grad_()
+
+
+def test_gradcheck_rotation_scale_stage():
+    a, b = _small_images()
+    fn = lambda x, y: torch.stack(  # noqa: E731
+        [(r := estimate_rotation_scale(x, y, n_angles=16, n_radii=12, window=2)).angle, r.scale]
+    )
+    assert gradcheck(fn, (a, b), eps=1e-6, atol=1e-4)
+
+
+def test_gradcheck_translation_stage_and_unwarp():
+    a, b = _small_images()
+    angle = torch.tensor([12.0], dtype=torch.float64, requires_grad=True)
+    scale = torch.tensor([1.05], dtype=torch.float64, requires_grad=True)
+
+    def fn(x, y, ang, sc):
+        tr = estimate_translation(x, unwarp_rotation_scale(y, ang, sc), ang, sc, window=2)
+        return torch.stack([tr.tx, tr.ty])
+
+    assert gradcheck(fn, (a, b, angle, scale), eps=1e-6, atol=1e-4)
+
+
+def test_gradcheck_whole_estimator():
+    a, b = _small_images()
+    est = PhaseCorrelationEstimator(n_angles=16, n_radii=12, window=2)
+    assert gradcheck(lambda x, y: est(x, y).as_tensor(), (a, b), eps=1e-6, atol=1e-4)
