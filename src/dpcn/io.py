@@ -1,0 +1,134 @@
+"""Reading images and turning user inputs into validated ``(B, C, H, W)`` tensors."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+from torch import Tensor
+
+__all__ = ["DpcnInputError", "load_image", "to_image_tensor", "to_grey", "prepare_pair"]
+
+_MIN_SIZE = 8
+
+
+class DpcnInputError(ValueError):
+    """A user-facing problem with an input (file, array or tensor); the message names it."""
+
+
+def load_image(path: str | Path) -> np.ndarray:
+    """Read an image file as ``(H, W)`` grey or ``(H, W, 3)`` RGB, float32 in ``[0, 1]``.
+
+    8- and 16-bit PNG/JPEG/TIFF and float TIFF are supported; an alpha channel is dropped.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise DpcnInputError(f"image file not found: {path}")
+    if not path.is_file():
+        raise DpcnInputError(f"not a file: {path}")
+    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if image is None:
+        raise DpcnInputError(f"cannot read image file (unsupported or corrupt): {path}")
+    if image.ndim == 3:
+        if image.shape[2] == 4:
+            image = image[:, :, :3]
+        image = cv2.cvtColor(image, cv2.COLOR_BGR2RGB) if image.shape[2] == 3 else image[:, :, 0]
+    return _to_unit_float(image, str(path))
+
+
+def _to_unit_float(array: np.ndarray, name: str) -> np.ndarray:
+    if array.dtype == np.bool_:
+        return array.astype(np.float32)
+    if np.issubdtype(array.dtype, np.integer):
+        info = np.iinfo(array.dtype)
+        return (array.astype(np.float32) - min(info.min, 0)) / float(info.max - min(info.min, 0))
+    if np.issubdtype(array.dtype, np.floating):
+        return array.astype(np.float32, copy=False)
+    raise DpcnInputError(f"{name} has unsupported dtype {array.dtype} (need integer, bool or float pixels)")
+
+
+def to_image_tensor(image: np.ndarray | Tensor, name: str = "image") -> Tensor:
+    """Convert a numpy ``(H, W)``/``(H, W, C)`` array or a torch ``(H, W)``/``(C, H, W)``/
+    ``(B, C, H, W)`` tensor into a floating ``(B, C, H, W)`` tensor, with checks.
+
+    Integer inputs are scaled to ``[0, 1]``; float tensors keep their dtype and device.
+    """
+    if isinstance(image, (str, Path)):
+        image = load_image(image)
+    if isinstance(image, np.ndarray):
+        if image.ndim == 2:
+            image = image[:, :, None]
+        if image.ndim != 3 or image.shape[2] not in (1, 3, 4):
+            raise DpcnInputError(
+                f"{name}: a numpy image must be (H, W) or (H, W, C) with C in 1, 3, 4; got shape {image.shape}"
+            )
+        if image.shape[2] == 4:
+            image = image[:, :, :3]
+        tensor = torch.from_numpy(np.ascontiguousarray(_to_unit_float(image, name))).permute(2, 0, 1)[None]
+    elif isinstance(image, Tensor):
+        tensor = image
+        if tensor.ndim == 2:
+            tensor = tensor[None, None]
+        elif tensor.ndim == 3:
+            tensor = tensor[None]
+        if tensor.ndim != 4:
+            raise DpcnInputError(
+                f"{name}: a tensor must be (H, W), (C, H, W) or (B, C, H, W); got shape {tuple(image.shape)}"
+            )
+        if not tensor.is_floating_point():
+            if tensor.dtype == torch.bool:
+                tensor = tensor.float()
+            elif tensor.is_complex():
+                raise DpcnInputError(f"{name}: complex tensors are not images")
+            else:
+                tensor = tensor.float() / float(torch.iinfo(tensor.dtype).max)
+    else:
+        raise DpcnInputError(f"{name}: expected a numpy array, torch tensor or file path, got {type(image).__name__}")
+    if tensor.shape[0] == 0 or tensor.shape[1] == 0 or tensor.shape[-1] == 0 or tensor.shape[-2] == 0:
+        raise DpcnInputError(f"{name} is empty: shape {tuple(tensor.shape)}")
+    if tensor.shape[-2] < _MIN_SIZE or tensor.shape[-1] < _MIN_SIZE:
+        raise DpcnInputError(
+            f"{name} is {tensor.shape[-2]}x{tensor.shape[-1]} pixels; at least {_MIN_SIZE}x{_MIN_SIZE} is needed"
+        )
+    if not torch.isfinite(tensor).all():
+        raise DpcnInputError(f"{name} contains NaN or infinite pixel values")
+    return tensor
+
+
+def to_grey(image: Tensor) -> Tensor:
+    """``(B, 3, H, W)`` RGB -> ``(B, 1, H, W)`` luminance (ITU-R BT.601); other inputs unchanged."""
+    if image.shape[1] != 3:
+        return image
+    weights = torch.tensor([0.299, 0.587, 0.114], device=image.device, dtype=image.dtype)
+    return (image * weights[None, :, None, None]).sum(dim=1, keepdim=True)
+
+
+def prepare_pair(template: object, source: object, device: torch.device | str | None = None) -> tuple[Tensor, Tensor]:
+    """Validate and convert a (template, source) pair into matching ``(B, C, H, W)`` tensors.
+
+    Channel counts that differ (grey vs colour) are reconciled by converting to grey; a
+    batch of one on either side is broadcast against the other side's batch.
+    """
+    t = to_image_tensor(template, "template")
+    s = to_image_tensor(source, "source")
+    if t.shape[-2:] != s.shape[-2:]:
+        raise DpcnInputError(
+            "template and source must have the same size, got "
+            f"{t.shape[-2]}x{t.shape[-1]} and {s.shape[-2]}x{s.shape[-1]} (H x W)"
+        )
+    if t.shape[1] != s.shape[1]:
+        t, s = to_grey(t), to_grey(s)
+        if t.shape[1] != s.shape[1]:
+            raise DpcnInputError(f"template has {t.shape[1]} channels and source {s.shape[1]}; cannot reconcile")
+    if t.shape[0] != s.shape[0]:
+        if t.shape[0] == 1:
+            t = t.expand(s.shape[0], -1, -1, -1)
+        elif s.shape[0] == 1:
+            s = s.expand(t.shape[0], -1, -1, -1)
+        else:
+            raise DpcnInputError(f"template batch {t.shape[0]} and source batch {s.shape[0]} differ")
+    dtype = torch.promote_types(t.dtype, s.dtype)
+    target = torch.device(device) if device is not None else s.device
+    return t.to(target, dtype), s.to(target, dtype)

@@ -1,0 +1,141 @@
+"""dpcn.register and `python -m dpcn predict`: inputs of every kind, and bad ones."""
+
+import json
+import os
+import subprocess
+import sys
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+import dpcn
+from dpcn.io import DpcnInputError, load_image
+
+from .conftest import angle_error, cv2_warp, photo
+
+TRUTH = (11.0, -23.5, 141.0, 0.93)
+
+
+@pytest.fixture(scope="module")
+def pair():
+    template = photo("astronaut")
+    return template, cv2_warp(template, *TRUTH)
+
+
+def check(pose, truth=TRUTH):
+    assert float(pose.tx[0]) == pytest.approx(truth[0], abs=0.5)
+    assert float(pose.ty[0]) == pytest.approx(truth[1], abs=0.5)
+    assert angle_error(pose.angle[0], truth[2]) < 0.3
+    assert float(pose.scale[0]) == pytest.approx(truth[3], rel=0.006)
+
+
+def test_register_numpy_float_and_uint8(pair):
+    template, source = pair
+    check(dpcn.register(template, source))
+    check(dpcn.register((template * 255).astype(np.uint8), (source * 255).astype(np.uint8)))
+
+
+def test_register_colour_and_mixed_channels():
+    template = photo("coffee", colour=True)
+    source = cv2_warp(template, *TRUTH)
+    check(dpcn.register(template, source))
+    grey_source = cv2.cvtColor(source, cv2.COLOR_RGB2GRAY)
+    check(dpcn.register(template, grey_source))
+
+
+def test_register_torch_batch(pair):
+    template, source = pair
+    t = torch.from_numpy(np.stack([template, template]))[:, None]
+    s = torch.from_numpy(np.stack([source, cv2_warp(template, 0.0, 0.0, -60.0, 1.1)]))[:, None]
+    pose = dpcn.register(t, s)
+    assert len(pose) == 2
+    check(pose[0])
+    check(pose[1], (0.0, 0.0, -60.0, 1.1))
+
+
+def test_register_paths(tmp_path, pair):
+    template, source = pair
+    cv2.imwrite(str(tmp_path / "t.png"), (template * 255).astype(np.uint8))
+    cv2.imwrite(str(tmp_path / "s.tif"), (source * 65535).astype(np.uint16))
+    check(dpcn.register(str(tmp_path / "t.png"), str(tmp_path / "s.tif")))
+    assert load_image(tmp_path / "s.tif").max() <= 1.0
+
+
+@pytest.mark.parametrize(
+    "template,source,message",
+    [
+        (np.zeros((64, 64)), np.zeros((64, 65)), "same size"),
+        (np.zeros((1, 1)), np.zeros((1, 1)), "at least 8x8"),
+        (np.zeros((0, 64)), np.zeros((0, 64)), "empty"),
+        (np.full((32, 32), np.nan), np.zeros((32, 32)), "NaN"),
+        (np.zeros((32, 32)), np.full((32, 32), np.inf), "NaN or infinite"),
+        (np.zeros((32, 32, 5)), np.zeros((32, 32, 5)), r"\(H, W, C\)"),
+        (np.zeros((32, 32), dtype=np.complex64), np.zeros((32, 32)), "unsupported dtype"),
+        ("no/such/file.png", np.zeros((32, 32)), "not found"),
+        ([[1, 2], [3, 4]], np.zeros((32, 32)), "expected a numpy array"),
+        (torch.zeros(2, 1, 32, 32), torch.zeros(3, 1, 32, 32), "batch"),
+        (torch.zeros(1, 1, 1, 32, 32), torch.zeros(1, 1, 32, 32), r"\(B, C, H, W\)"),
+    ],
+)
+def test_register_bad_inputs(template, source, message):
+    with pytest.raises(DpcnInputError, match=message):
+        dpcn.register(template, source)
+
+
+def test_corrupt_image_file(tmp_path):
+    bad = tmp_path / "bad.png"
+    bad.write_bytes(b"\x89PNG\r\n\x1a\n not really")
+    with pytest.raises(DpcnInputError, match="cannot read"):
+        load_image(bad)
+
+
+def run_cli(*args, cwd):
+    env = {k: v for k, v in os.environ.items() if k != "DPCN_DEBUG"}
+    return subprocess.run([sys.executable, "-m", "dpcn", *args], capture_output=True, text=True, cwd=cwd, env=env)
+
+
+def test_cli_predict_prints_json(tmp_path, pair):
+    template, source = pair
+    cv2.imwrite(str(tmp_path / "t.png"), (template * 255).astype(np.uint8))
+    cv2.imwrite(str(tmp_path / "s.png"), (source * 255).astype(np.uint8))
+    out = run_cli("predict", "template=t.png", "source=s.png", cwd=tmp_path)
+    assert out.returncode == 0, out.stderr
+    result = json.loads(out.stdout)
+    assert set(result) == {"tx", "ty", "angle", "scale", "confidence"}
+    check(dpcn.Pose.from_dict(result))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["s.png", "t.png"]  # a query leaves no run directory
+
+
+@pytest.mark.parametrize(
+    "args,message",
+    [
+        (["source=s.png"], "needs template=PATH and source=PATH"),
+        (["template=t.png", "source=missing.png"], "not found: missing.png"),
+        (["template=t.png", "source=small.png"], "same size"),
+        (["template=t.png", "source=s.png", "registration.temperature=-1"], "temperatures must be positive"),
+        (["template=t.png", "source=s.png", "device=cuda:7"], "CUDA is not available"),
+    ],
+)
+def test_cli_predict_errors_are_one_line(tmp_path, pair, args, message):
+    if "device=cuda:7" in args and torch.cuda.is_available():
+        pytest.skip("a CUDA machine has a device to offer")
+    template, source = pair
+    cv2.imwrite(str(tmp_path / "t.png"), (template * 255).astype(np.uint8))
+    cv2.imwrite(str(tmp_path / "s.png"), (source * 255).astype(np.uint8))
+    cv2.imwrite(str(tmp_path / "small.png"), (template[:64] * 255).astype(np.uint8))
+    out = run_cli("predict", *args, cwd=tmp_path)
+    assert out.returncode == 2
+    lines = out.stderr.strip().splitlines()
+    assert len(lines) == 1 and message in lines[0], out.stderr
+    assert "Traceback" not in out.stderr
+
+
+def test_cli_unknown_key_and_command(tmp_path):
+    out = run_cli("predict", "tempalte=t.png", cwd=tmp_path)
+    assert out.returncode != 0 and "tempalte" in out.stderr and "Traceback" not in out.stderr
+    out = run_cli("frobnicate", cwd=tmp_path)
+    assert out.returncode == 2 and "unknown command 'frobnicate'" in out.stderr
+    out = run_cli("--help", cwd=tmp_path)
+    assert out.returncode == 0 and "predict" in out.stdout
