@@ -42,7 +42,7 @@ class TestSpectrum:
 
     def test_highpass_zero_at_dc_and_half_layout(self):
         hp = highpass_filter(16, 12)
-        assert hp[8, 6] == 0 and hp.max() <= 6.0
+        assert hp[8, 6] == 0 and hp.max() <= 2.0 and hp[0, 0] == pytest.approx(2.0)  # 2 at the Nyquist corner
         half = highpass_filter(16, 12, half=True)
         assert half.shape == (16, 7)
         torch.testing.assert_close(half[:, :6], hp[:, 6:])

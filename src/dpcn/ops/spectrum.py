@@ -53,15 +53,15 @@ def highpass_filter(
     """The Reddy & Chatterji high-pass filter for an fftshifted ``(H, W)`` spectrum.
 
     ``H(u, v) = (1 - X) (2 - X)`` with ``X = cos(pi u) cos(pi v)`` and ``u, v`` the
-    frequencies in cycles per pixel times 2 (so ``[-1, 1)``). Zero at DC, 2 at Nyquist; it
+    frequencies in cycles per pixel (``[-0.5, 0.5]``). Zero at DC, 2 at Nyquist; it
     de-emphasises the low frequencies that dominate every natural image. ``half=True`` gives
     the ``(H, W // 2 + 1)`` filter for a half spectrum (see :func:`magnitude_spectrum`).
     """
-    fy = torch.fft.fftshift(torch.fft.fftfreq(height, device=device, dtype=dtype)) * 2
+    fy = torch.fft.fftshift(torch.fft.fftfreq(height, device=device, dtype=dtype))
     if half:
-        fx = torch.fft.rfftfreq(width, device=device, dtype=dtype) * 2
+        fx = torch.fft.rfftfreq(width, device=device, dtype=dtype)
     else:
-        fx = torch.fft.fftshift(torch.fft.fftfreq(width, device=device, dtype=dtype)) * 2
+        fx = torch.fft.fftshift(torch.fft.fftfreq(width, device=device, dtype=dtype))
     x = torch.cos(torch.pi * fy)[:, None] * torch.cos(torch.pi * fx)[None, :]
     return (1.0 - x) * (2.0 - x)
 
