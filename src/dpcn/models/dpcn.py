@@ -1,0 +1,213 @@
+"""DPCN: four U-Nets feeding the differentiable phase correlation (paper section 2).
+
+Phase 1 (rotation and scale): U-Nets ``f1``/``f2`` extract features of the template and the
+source; magnitude spectra -> log-polar -> phase correlation -> rotation (mod 180 degrees)
+and scale. Between the phases the source is un-rotated/un-scaled by that estimate with a
+kornia warp. Phase 2 (translation): U-Nets ``g1``/``g2`` -> phase correlation -> shift.
+
+The half-turn left open by phase 1 is settled in phase 2: the translation features are
+computed for the un-warped source and for its half-turn, and the stronger peak wins. (The
+conjugate-spectrum shortcut of the classical estimator does not apply here: a U-Net is not
+equivariant to half-turns.)
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor, nn
+
+from ..estimator import (
+    RotationScale,
+    Translation,
+    estimate_rotation_scale,
+    estimate_translation,
+    unwarp_rotation_scale,
+)
+from ..ops._checks import check_pair
+from ..ops.logpolar import log_polar_grid, log_radius_step
+from ..pose import Pose, wrap_angle
+from .unet import UNet
+
+__all__ = ["DPCN", "DPCNOutput", "half_turn"]
+
+
+def half_turn(image: Tensor) -> Tensor:
+    """Rotate ``(B, C, H, W)`` images by 180 degrees about ``(W / 2, H / 2)`` (circularly),
+    exactly: pixel ``p`` goes to ``-p`` modulo the size."""
+    return torch.roll(torch.flip(image, dims=(-2, -1)), shifts=(1, 1), dims=(-2, -1))
+
+
+@dataclass
+class DPCNOutput:
+    """Everything one pass computes (for losses, metrics and interpretability figures)."""
+
+    pose: Pose
+    rotation_scale: RotationScale
+    translation: Translation
+    unwarped_source: Tensor
+    features: dict[str, Tensor]
+
+
+class DPCN(nn.Module):
+    """Deep Phase Correlation Network. ``forward(template, source) -> DPCNOutput``.
+
+    Args:
+        in_channels: image channels (1 or 3).
+        feature_channels: channels of each U-Net's output (pooled by the correlation).
+        base_channels, depth: U-Net width and number of down-sampling levels (see
+            :class:`~dpcn.models.unet.UNet`); presets: ``tiny`` (4, 3), ``paper`` (32, 4).
+        norm: U-Net normalisation (``batch``, ``group``, ``none``).
+        image_size: ``(H, W)`` the model is built for; other sizes raise a clear error
+            (``None`` accepts any size).
+        n_angles, n_radii, min_radius, max_radius, highpass: phase-1 log-polar settings.
+        sigma, rotation_sigma, temperature, rotation_temperature, window: sub-pixel peak
+            location at inference (see :class:`~dpcn.estimator.PhaseCorrelationEstimator`).
+        train_temperature: softmax temperature of the training losses (the paper's
+            temperature), per phase ``(rotation_scale, translation)``; correlation values
+            are in ``[-1, 1]``.
+        learnable_temperature: learn the two training temperatures.
+        scale_range: scales searched in phase 1.
+    """
+
+    def __init__(
+        self,
+        in_channels: int = 1,
+        feature_channels: int = 1,
+        base_channels: int = 8,
+        depth: int = 3,
+        norm: str = "group",
+        image_size: tuple[int, int] | list[int] | None = (256, 256),
+        n_angles: int = 256,
+        n_radii: int = 256,
+        min_radius: float = 0.03,
+        max_radius: float = 0.95,
+        highpass: bool = True,
+        sigma: float = 2.0,
+        rotation_sigma: float = 1.0,
+        temperature: float = 0.1,
+        rotation_temperature: float = 0.07,
+        window: int = 3,
+        train_temperature: tuple[float, float] | list[float] | float = (0.02, 0.02),
+        learnable_temperature: bool = True,
+        scale_range: tuple[float, float] | list[float] | None = (0.5, 2.0),
+    ) -> None:
+        super().__init__()
+        log_polar_grid(8, 8, n_angles, n_radii, min_radius, max_radius)  # validates the grid
+
+        def unet() -> UNet:
+            return UNet(in_channels, feature_channels, base_channels, depth, norm)
+
+        self.rs_template, self.rs_source = unet(), unet()
+        self.t_template, self.t_source = unet(), unet()
+        self.in_channels = in_channels
+        self.image_size = None if image_size is None else (int(image_size[0]), int(image_size[1]))
+        self.n_angles, self.n_radii = n_angles, n_radii
+        self.min_radius, self.max_radius = min_radius, max_radius
+        self.highpass = highpass
+        self.sigma, self.rotation_sigma = sigma, rotation_sigma
+        self.temperature, self.rotation_temperature = temperature, rotation_temperature
+        self.window = window
+        self.scale_range = None if scale_range is None else (float(scale_range[0]), float(scale_range[1]))
+        if isinstance(train_temperature, (int, float)):
+            train_temperature = (train_temperature, train_temperature)
+        if min(train_temperature) <= 0:
+            raise ValueError(f"train_temperature must be positive, got {train_temperature}")
+        log_t = torch.tensor([math.log(t) for t in train_temperature], dtype=torch.float32)
+        if learnable_temperature:
+            self.log_train_temperature = nn.Parameter(log_t)
+        else:
+            self.register_buffer("log_train_temperature", log_t)
+
+    # ------------------------------------------------------------------ helpers
+    @property
+    def radius_step(self) -> float:
+        """ln-scale per log-polar column."""
+        return log_radius_step(self.n_radii, self.min_radius, self.max_radius)
+
+    @property
+    def train_temperature(self) -> Tensor:
+        """``(2,)`` softmax temperatures of the losses: rotation/scale, translation."""
+        return self.log_train_temperature.exp()
+
+    def check_inputs(self, template: Tensor, source: Tensor) -> None:
+        check_pair(template, source, min_size=8)
+        if template.shape[1] != self.in_channels:
+            raise ValueError(f"this model takes {self.in_channels}-channel images, got {template.shape[1]} channels")
+        if self.image_size is not None and tuple(template.shape[-2:]) != self.image_size:
+            h, w = self.image_size
+            raise ValueError(
+                f"this model was built for {h}x{w} images, got {template.shape[-2]}x{template.shape[-1]}; "
+                f"resize or crop the inputs to {h}x{w} (scale the translation back by the same factor)"
+            )
+
+    # ------------------------------------------------------------------ phases
+    def rotation_scale(self, template: Tensor, source: Tensor) -> tuple[RotationScale, dict[str, Tensor]]:
+        """Phase 1: features, then rotation (mod 180 degrees) and scale."""
+        features = {"rs_template": self.rs_template(template), "rs_source": self.rs_source(source)}
+        rs = estimate_rotation_scale(
+            features["rs_template"],
+            features["rs_source"],
+            n_angles=self.n_angles,
+            n_radii=self.n_radii,
+            min_radius=self.min_radius,
+            max_radius=self.max_radius,
+            highpass=self.highpass,
+            sigma=self.rotation_sigma,
+            temperature=self.rotation_temperature,
+            window=self.window,
+            scale_range=self.scale_range,
+        )
+        return rs, features
+
+    def translation(
+        self, template: Tensor, unwarped_source: Tensor, angle: Tensor, scale: Tensor, resolve_180: bool = True
+    ) -> tuple[Translation, dict[str, Tensor]]:
+        """Phase 2 on a source already un-warped by ``angle``/``scale``.
+
+        With ``resolve_180`` the half-turned source is tried too (one more source U-Net
+        pass, batched with the first) and the stronger peak decides the angle.
+        """
+        batch = template.shape[0]
+        ft = self.t_template(template)
+        if resolve_180:
+            fs_both = self.t_source(torch.cat([unwarped_source, half_turn(unwarped_source)]))
+            fs, fs_turned = fs_both[:batch], fs_both[batch:]
+        else:
+            fs = self.t_source(unwarped_source)
+        kw = dict(resolve_180=False, sigma=self.sigma, temperature=self.temperature, window=self.window)
+        tr = estimate_translation(ft, fs, angle, scale, **kw)
+        if resolve_180:
+            turned = estimate_translation(ft, fs_turned, angle + 180.0, scale, **kw)
+            take = turned.confidence > tr.confidence
+            pick = lambda a, b: torch.where(take.view(-1, *([1] * (a.ndim - 1))), b, a)  # noqa: E731
+            tr = Translation(
+                pick(tr.tx, turned.tx),
+                pick(tr.ty, turned.ty),
+                pick(tr.angle, turned.angle),
+                pick(tr.confidence, turned.confidence),
+                pick(tr.surface, turned.surface),
+            )
+            fs = pick(fs, fs_turned)
+        return tr, {"t_template": ft, "t_source": fs}
+
+    def forward(self, template: Tensor, source: Tensor) -> DPCNOutput:
+        """End to end, no ground truth: ``(B, C, H, W) x 2 -> DPCNOutput``."""
+        self.check_inputs(template, source)
+        rs, features = self.rotation_scale(template, source)
+        unwarped = unwarp_rotation_scale(source, rs.angle, rs.scale)
+        tr, t_features = self.translation(template, unwarped, rs.angle, rs.scale)
+        pose = Pose(tr.tx, tr.ty, wrap_angle(tr.angle), rs.scale, tr.confidence)
+        return DPCNOutput(pose, rs, tr, unwarped, {**features, **t_features})
+
+    @torch.no_grad()
+    def match(self, template: Tensor, source: Tensor) -> Pose:
+        """Inference: the pose mapping ``template`` onto ``source`` (``(B,)`` fields)."""
+        was_training = self.training
+        self.eval()
+        try:
+            return self(template, source).pose
+        finally:
+            self.train(was_training)

@@ -1,0 +1,90 @@
+"""A small, configurable U-Net feature extractor (the paper's f1/f2 and g1/g2)."""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor, nn
+from torch.nn import functional as F
+
+__all__ = ["UNet"]
+
+
+def _norm(kind: str, channels: int) -> nn.Module:
+    if kind == "batch":
+        return nn.BatchNorm2d(channels)
+    if kind == "group":
+        return nn.GroupNorm(math.gcd(8, channels), channels)
+    if kind == "none":
+        return nn.Identity()
+    raise ValueError(f"unknown norm {kind!r}; choose batch, group or none")
+
+
+def _block(in_ch: int, out_ch: int, norm: str) -> nn.Sequential:
+    return nn.Sequential(
+        nn.Conv2d(in_ch, out_ch, 3, padding=1, bias=norm == "none"),
+        _norm(norm, out_ch),
+        nn.SiLU(inplace=True),
+        nn.Conv2d(out_ch, out_ch, 3, padding=1, bias=norm == "none"),
+        _norm(norm, out_ch),
+        nn.SiLU(inplace=True),
+    )
+
+
+class UNet(nn.Module):
+    """U-Net: ``(B, in_channels, H, W) -> (B, out_channels, H, W)``, positive outputs.
+
+    Args:
+        in_channels: 1 (grey) or 3 (colour) usually.
+        out_channels: feature channels fed to the phase correlation (pooled there).
+        base_channels: width of the first level; doubled at each down-sampling.
+        depth: number of down-sampling (and up-sampling) levels; the paper uses 4.
+            ``H`` and ``W`` need not be multiples of ``2 ** depth`` (skips are resized).
+        norm: ``group`` (default: a pair gives the same features alone or in any batch, and
+            DDP needs no synchronisation), ``batch`` or ``none`` (about 20 % faster on CPU).
+
+    Outputs go through softplus: the paper keeps features positive so that the correlation
+    has no negative peaks to confuse with matches.
+
+    A 1x1 convolution from the input joins the head, and the head starts at zero: an
+    untrained U-Net is ``softplus(mean of the input channels)``, a monotonic (almost linear on
+    ``[0, 1]``) image, so an untrained DPCN *is* classical phase correlation and training
+    learns what to add to it, instead of first having to recover the image from noise.
+    """
+
+    def __init__(
+        self, in_channels: int = 1, out_channels: int = 1, base_channels: int = 16, depth: int = 4, norm: str = "group"
+    ) -> None:
+        super().__init__()
+        if depth < 0 or base_channels < 1 or in_channels < 1 or out_channels < 1:
+            raise ValueError(
+                f"invalid U-Net size: in_channels={in_channels}, out_channels={out_channels}, "
+                f"base_channels={base_channels}, depth={depth}"
+            )
+        widths = [base_channels * 2**i for i in range(depth + 1)]
+        self.stem = _block(in_channels, widths[0], norm)
+        self.down = nn.ModuleList(_block(widths[i], widths[i + 1], norm) for i in range(depth))
+        self.up = nn.ModuleList(_block(widths[i + 1] + widths[i], widths[i], norm) for i in reversed(range(depth)))
+        self.head = nn.Conv2d(widths[0], out_channels, 1)
+        self.skip = nn.Conv2d(in_channels, out_channels, 1)
+        nn.init.zeros_(self.head.weight)
+        nn.init.zeros_(self.head.bias)
+        nn.init.constant_(self.skip.weight, 1.0 / in_channels)
+        nn.init.zeros_(self.skip.bias)
+        self.depth = depth
+        # Channels-last: with a few channels at full resolution, oneDNN's convolutions (and
+        # above all their backward pass) run 3-5x faster in this layout on CPUs.
+        self.to(memory_format=torch.channels_last)
+
+    def forward(self, x: Tensor) -> Tensor:
+        x = x.contiguous(memory_format=torch.channels_last)
+        skips = [self.stem(x)]
+        for block in self.down:
+            skips.append(block(F.max_pool2d(skips[-1], 2, ceil_mode=True)))
+        y = skips.pop()
+        for block in self.up:
+            skip = skips.pop()
+            y = F.interpolate(y, size=skip.shape[-2:], mode="bilinear", align_corners=False)
+            y = block(torch.cat([y, skip], dim=1))
+        return F.softplus(self.head(y) + self.skip(x)).contiguous()

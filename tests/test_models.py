@@ -1,0 +1,86 @@
+"""U-Net and DPCN: shapes, conventions, bad input, batch independence, gradients."""
+
+import numpy as np
+import pytest
+import torch
+from torch.autograd import gradcheck
+
+from dpcn.models import DPCN, UNet, half_turn
+
+from .conftest import cv2_warp, photo
+
+
+def small_dpcn(**kw):
+    args = dict(base_channels=2, depth=1, image_size=(32, 32), n_angles=32, n_radii=32)
+    args.update(kw)
+    return DPCN(**args)
+
+
+@pytest.mark.parametrize("size", [(32, 32), (37, 50)])
+@pytest.mark.parametrize("norm", ["group", "batch", "none"])
+def test_unet_shape_and_positive(size, norm):
+    net = UNet(3, 2, base_channels=4, depth=3, norm=norm)
+    out = net(torch.randn(2, 3, *size))
+    assert out.shape == (2, 2, *size)
+    assert (out > 0).all()
+
+
+def test_unet_rejects_bad_sizes():
+    with pytest.raises(ValueError, match="invalid U-Net size"):
+        UNet(1, 1, base_channels=0)
+    with pytest.raises(ValueError, match="unknown norm"):
+        UNet(norm="layer")
+
+
+def test_half_turn_is_a_180_degree_rotation_about_the_pose_centre():
+    image = photo("camera", (64, 64))
+    expected = cv2_warp(image, 0.0, 0.0, 180.0, 1.0)
+    got = half_turn(torch.from_numpy(image)[None, None])[0, 0].numpy()
+    np.testing.assert_allclose(got[1:, 1:], expected[1:, 1:], atol=1e-5)
+
+
+def test_dpcn_forward_outputs():
+    model = small_dpcn().eval()
+    t, s = torch.rand(3, 1, 32, 32), torch.rand(3, 1, 32, 32)
+    out = model(t, s)
+    assert out.pose.as_tensor().shape == (3, 4)
+    assert out.rotation_scale.surface.shape == (3, 32, 32)
+    assert out.translation.surface.shape == (3, 32, 32)
+    assert set(out.features) == {"rs_template", "rs_source", "t_template", "t_source"}
+    assert (out.pose.angle > -180).all() and (out.pose.angle <= 180).all()
+
+
+def test_dpcn_rejects_wrong_size_and_channels():
+    model = small_dpcn()
+    with pytest.raises(ValueError, match="built for 32x32 images, got 40x40"):
+        model.match(torch.rand(1, 1, 40, 40), torch.rand(1, 1, 40, 40))
+    with pytest.raises(ValueError, match="1-channel images, got 3"):
+        model.match(torch.rand(1, 3, 32, 32), torch.rand(1, 3, 32, 32))
+    with pytest.raises(ValueError, match="NaN"):
+        model.match(torch.full((1, 1, 32, 32), float("nan")), torch.rand(1, 1, 32, 32))
+    with pytest.raises(ValueError, match="train_temperature"):
+        small_dpcn(train_temperature=0.0)
+
+
+def test_dpcn_pair_result_does_not_depend_on_its_batch():
+    torch.manual_seed(1)
+    model = small_dpcn().eval()
+    t, s = torch.rand(4, 1, 32, 32), torch.rand(4, 1, 32, 32)
+    batched = model.match(t, s).as_tensor()
+    alone = torch.cat([model.match(t[i : i + 1], s[i : i + 1]).as_tensor() for i in range(4)])
+    torch.testing.assert_close(batched, alone, atol=1e-4, rtol=1e-4)
+
+
+def test_temperature_is_learnable_or_fixed():
+    assert small_dpcn(learnable_temperature=True).log_train_temperature.requires_grad
+    fixed = small_dpcn(learnable_temperature=False, train_temperature=(0.05, 0.1))
+    assert not any(p is fixed.log_train_temperature for p in fixed.parameters())
+    torch.testing.assert_close(fixed.train_temperature, torch.tensor([0.05, 0.1]))
+
+
+def test_gradcheck_end_to_end_to_both_images():
+    torch.manual_seed(0)
+    model = DPCN(base_channels=2, depth=1, image_size=None, n_angles=12, n_radii=10, window=1).double().eval()
+    t = torch.rand(1, 1, 12, 12, dtype=torch.float64, requires_grad=True)
+    s = torch.rand(1, 1, 12, 12, dtype=torch.float64, requires_grad=True)
+    assert gradcheck(lambda a, b: model(a, b).pose.as_tensor(), (t, s), eps=1e-6, atol=1e-4)
