@@ -1,0 +1,73 @@
+"""The paper's metrics (eq. 15-16): accuracy within a threshold and mean squared error.
+
+Errors are per pair: ``|dx|``, ``|dy|`` in pixels, the rotation error in degrees wrapped to
+``[0, 180]``, and ``|d scale|`` (absolute, as in the paper's tables).
+"""
+
+from __future__ import annotations
+
+import csv
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+__all__ = ["COMPONENTS", "pose_errors", "summarize", "format_table", "write_csv", "thresholds_for"]
+
+COMPONENTS = ("x", "y", "rot", "scale")
+
+
+def thresholds_for(translation_px: float = 5.0) -> dict[str, dict[str, float]]:
+    """The paper's thresholds (``translation_px``: 5 for simulation, 10 for Aero-Ground) and strict ones."""
+    return {
+        "paper": {"x": translation_px, "y": translation_px, "rot": 1.0, "scale": 0.2},
+        "strict": {"x": 1.0, "y": 1.0, "rot": 0.5, "scale": 0.02},
+    }
+
+
+def pose_errors(prediction: Tensor, truth: Tensor) -> Tensor:
+    """``(N, 4)`` absolute errors of ``(N, 4)`` ``(tx, ty, angle, scale)`` poses."""
+    err = (prediction.double() - truth.double()).abs()
+    d_angle = torch.remainder(prediction[:, 2].double() - truth[:, 2].double() + 180.0, 360.0) - 180.0
+    err[:, 2] = d_angle.abs()
+    return err
+
+
+def summarize(errors: Tensor, thresholds: Mapping[str, Mapping[str, float]]) -> dict[str, float]:
+    """``{"acc_x@5": %, ..., "mse_x": ...}`` for ``(N, 4)`` errors."""
+    out: dict[str, float] = {}
+    for i, name in enumerate(COMPONENTS):
+        for limit in sorted({t[name] for t in thresholds.values()}, reverse=True):
+            out[f"acc_{name}@{limit:g}"] = 100.0 * float((errors[:, i] <= limit).double().mean())
+        out[f"mse_{name}"] = float((errors[:, i] ** 2).mean())
+    out["n"] = float(errors.shape[0])
+    return out
+
+
+def format_table(rows: Sequence[tuple[str, Mapping[str, float]]]) -> str:
+    """Plain-text table, one row per method/data set, columns as in the paper's tables."""
+    if not rows:
+        return ""
+    keys = [k for k in rows[0][1] if k != "n"]
+    width = max(len(name) for name, _ in rows)
+    lines = [f"{'':{width}s} " + " ".join(f"{k:>12s}" for k in keys) + f" {'n':>6s}"]
+    for name, metrics in rows:
+        cells = []
+        for k in keys:
+            value = metrics[k]
+            cells.append(f"{value:12.2f}" if k.startswith("acc") else f"{value:12.4g}")
+        lines.append(f"{name:{width}s} " + " ".join(cells) + f" {int(metrics.get('n', 0)):6d}")
+    return "\n".join(lines)
+
+
+def write_csv(path: str | Path, rows: Sequence[tuple[str, Mapping[str, float]]]) -> Path:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    keys = list(rows[0][1])
+    with path.open("w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(["name", *keys])
+        for name, metrics in rows:
+            writer.writerow([name, *(metrics[k] for k in keys)])
+    return path

@@ -1,0 +1,155 @@
+"""Training losses of DPCN (paper eq. 12-13): L1 on the soft-argmax expectation and KL
+divergence to a Gaussian one-peak target, per phase, mixed by weights.
+
+Everything is measured in the bins of the correlation surface it supervises (log-polar rows
+and columns, pixels), so the weights of the two phases are comparable.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor, nn
+
+from ..ops.soft_argmax import soft_argmax2d
+
+__all__ = [
+    "gaussian_target",
+    "one_peak_kl",
+    "expectation_l1",
+    "DPCNLoss",
+    "rotation_scale_target",
+    "translation_target",
+]
+
+
+def _offsets(n: int, centre: Tensor, circular: bool) -> Tensor:
+    d = torch.arange(n, device=centre.device, dtype=centre.dtype)[None] - centre[:, None]
+    return torch.remainder(d + n / 2, n) - n / 2 if circular else d
+
+
+def gaussian_target(
+    shape: tuple[int, int], centre: Tensor, sigma: float, circular: tuple[bool, bool] = (False, False)
+) -> Tensor:
+    """``(B, H, W)`` normalised Gaussian bumps at sub-pixel ``centre`` ``(B, 2)`` (row, col)."""
+    dy = _offsets(shape[0], centre[:, 0], circular[0])
+    dx = _offsets(shape[1], centre[:, 1], circular[1])
+    logits = -(dy[:, :, None] ** 2 + dx[:, None, :] ** 2) / (2 * sigma**2)
+    return torch.softmax(logits.flatten(1), dim=1).view(-1, *shape)
+
+
+def one_peak_kl(
+    surface: Tensor, centre: Tensor, temperature: Tensor | float, sigma: float, circular: tuple[bool, bool]
+) -> Tensor:
+    """``KL(target || softmax(surface / temperature))`` per pair, ``(B,)``."""
+    target = gaussian_target(surface.shape[-2:], centre, sigma, circular)
+    log_p = torch.log_softmax((surface / temperature).flatten(1), dim=1)
+    t = target.flatten(1)
+    return (t * (torch.log(t.clamp_min(1e-30)) - log_p)).sum(dim=1)
+
+
+def expectation_l1(
+    surface: Tensor, centre: Tensor, temperature: Tensor | float, circular: tuple[bool, bool]
+) -> tuple[Tensor, Tensor]:
+    """Per-axis ``|E[position] - centre|`` in bins (whole-surface soft-argmax), ``(B,)`` each."""
+    peak = soft_argmax2d(surface, temperature, window=None, circular=circular)
+    errors = []
+    for axis, n in enumerate(surface.shape[-2:]):
+        d = peak[:, axis] - centre[:, axis]
+        if circular[axis]:
+            d = torch.remainder(d + n / 2, n) - n / 2
+        errors.append(d.abs())
+    return errors[0], errors[1]
+
+
+def rotation_scale_target(angle: Tensor, scale: Tensor, n_angles: int, n_radii: int, radius_step: float) -> Tensor:
+    """``(B, 2)`` (row, col) of the true peak on the phase-1 log-polar correlation surface."""
+    row = torch.remainder(n_angles // 2 - angle * (n_angles / 180.0), n_angles)
+    col = n_radii // 2 - torch.log(scale) / radius_step
+    return torch.stack([row, col], dim=1)
+
+
+def translation_target(tx: Tensor, ty: Tensor, angle: Tensor, scale: Tensor, size: tuple[int, int]) -> Tensor:
+    """``(B, 2)`` (row, col) of the true peak on the phase-2 surface, for a source un-warped by
+    ``angle``/``scale``: the shift there is ``A^-1 t`` (``A`` the pose's linear part)."""
+    theta = torch.deg2rad(angle)
+    c, s = torch.cos(theta), torch.sin(theta)
+    dx = (c * tx - s * ty) / scale
+    dy = (s * tx + c * ty) / scale
+    return torch.stack([size[0] // 2 + dy, size[1] // 2 + dx], dim=1)
+
+
+@dataclass
+class LossTerms:
+    total: Tensor
+    terms: dict[str, Tensor]
+
+
+class DPCNLoss(nn.Module):
+    """Weighted sum of the L1 and one-peak KL losses of both phases.
+
+    Args:
+        l1_weight, kl_weight: default weight of every L1 (expectation, in bins) term and of
+            every one-peak KL term.
+        l1_rotation, l1_scale, l1_translation, kl_rotation_scale, kl_translation: per-term
+            weights overriding those defaults (``None``: the default).
+        sigma: width (bins) of the Gaussian one-peak target.
+    """
+
+    def __init__(
+        self,
+        l1_weight: float = 1.0,
+        kl_weight: float = 1.0,
+        sigma: float = 1.5,
+        l1_rotation: float | None = None,
+        l1_scale: float | None = None,
+        l1_translation: float | None = None,
+        kl_rotation_scale: float | None = None,
+        kl_translation: float | None = None,
+    ) -> None:
+        super().__init__()
+        l1_rotation = l1_weight if l1_rotation is None else l1_rotation
+        l1_scale = l1_weight if l1_scale is None else l1_scale
+        l1_translation = l1_weight if l1_translation is None else l1_translation
+        kl_rotation_scale = kl_weight if kl_rotation_scale is None else kl_rotation_scale
+        kl_translation = kl_weight if kl_translation is None else kl_translation
+        if sigma <= 0:
+            raise ValueError(f"loss sigma must be positive, got {sigma}")
+        weights = (l1_rotation, l1_scale, l1_translation, kl_rotation_scale, kl_translation)
+        if min(weights) < 0 or not any(w > 0 for w in weights):
+            raise ValueError(f"loss weights must be >= 0 and not all zero, got {weights}")
+        self.weights = dict(
+            l1_rotation=l1_rotation,
+            l1_scale=l1_scale,
+            l1_translation=l1_translation,
+            kl_rotation_scale=kl_rotation_scale,
+            kl_translation=kl_translation,
+        )
+        self.sigma = sigma
+
+    def forward(
+        self,
+        rs_surface: Tensor,
+        rs_centre: Tensor,
+        t_surface: Tensor,
+        t_centre: Tensor,
+        temperatures: Tensor,
+    ) -> LossTerms:
+        t_rs, t_tr = temperatures[0], temperatures[1]
+        terms: dict[str, Tensor] = {}
+        if self.weights["l1_rotation"] or self.weights["l1_scale"]:
+            rot, sc = expectation_l1(rs_surface, rs_centre, t_rs, (True, False))
+            terms["l1_rotation"], terms["l1_scale"] = rot.mean(), sc.mean()
+        if self.weights["l1_translation"]:
+            dy, dx = expectation_l1(t_surface, t_centre, t_tr, (True, True))
+            terms["l1_translation"] = (dy + dx).mean()
+        if self.weights["kl_rotation_scale"]:
+            terms["kl_rotation_scale"] = one_peak_kl(rs_surface, rs_centre, t_rs, self.sigma, (True, False)).mean()
+        if self.weights["kl_translation"]:
+            terms["kl_translation"] = one_peak_kl(t_surface, t_centre, t_tr, self.sigma, (True, True)).mean()
+        total = sum(self.weights[k] * v for k, v in terms.items() if self.weights[k])
+        if not isinstance(total, Tensor) or not math.isfinite(float(total.detach())):
+            raise FloatingPointError(f"non-finite training loss: { {k: float(v) for k, v in terms.items()} }")
+        return LossTerms(total, terms)

@@ -1,0 +1,111 @@
+"""Losses (against the classical estimator's own surfaces) and the paper's metrics."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from torch.autograd import gradcheck
+
+from dpcn.estimator import estimate_rotation_scale, estimate_translation, unwarp_rotation_scale
+from dpcn.metrics import format_table, pose_errors, summarize, thresholds_for, write_csv
+from dpcn.ops.logpolar import log_radius_step
+from dpcn.training.losses import (
+    DPCNLoss,
+    expectation_l1,
+    gaussian_target,
+    one_peak_kl,
+    rotation_scale_target,
+    translation_target,
+)
+
+from .conftest import cv2_warp, photo
+
+TRUTH = (13.0, -21.0, 37.0, 1.12)
+
+
+@pytest.fixture(scope="module")
+def pair():
+    template = photo("astronaut")
+    source = cv2_warp(template, *TRUTH)
+    return torch.from_numpy(template)[None, None], torch.from_numpy(source)[None, None]
+
+
+def test_targets_sit_on_the_classical_peaks(pair):
+    """The supervision targets must be where phase correlation itself puts the true pose."""
+    t, s = pair
+    tx, ty, angle, scale = (torch.tensor([v]) for v in TRUTH)
+    rs = estimate_rotation_scale(t, s)
+    centre = rotation_scale_target(angle, scale, 256, 256, log_radius_step(256, 0.03, 0.95))
+    peak = divmod(int(rs.surface[0].argmax()), 256)
+    assert abs(peak[0] - float(centre[0, 0])) <= 1 and abs(peak[1] - float(centre[0, 1])) <= 1
+    # translation surface of a source un-warped by a slightly wrong rotation/scale
+    un_angle, un_scale = angle + 0.3, scale * 1.002
+    tr = estimate_translation(t, unwarp_rotation_scale(s, un_angle, un_scale), un_angle, un_scale, resolve_180=False)
+    centre = translation_target(tx, ty, un_angle, un_scale, (256, 256))
+    peak = divmod(int(tr.surface[0].argmax()), 256)
+    assert abs(peak[0] - float(centre[0, 0])) <= 1 and abs(peak[1] - float(centre[0, 1])) <= 1
+
+
+def test_gaussian_target_normalised_and_circular():
+    target = gaussian_target((16, 20), torch.tensor([[0.2, 10.0], [8.0, 3.5]]), sigma=1.5, circular=(True, False))
+    torch.testing.assert_close(target.sum(dim=(1, 2)), torch.ones(2))
+    assert target[0, 15, 10] > target[0, 3, 10]  # wraps around the row axis
+    assert int(target[1].argmax()) // 20 == 8
+
+
+def test_kl_is_zero_at_the_target_and_l1_at_the_centre():
+    centre = torch.tensor([[5.3, 7.6]], dtype=torch.float64)
+    target = gaussian_target((16, 16), centre, 1.5, (True, True))
+    surface = 0.02 * torch.log(target)
+    assert float(one_peak_kl(surface, centre, 0.02, 1.5, (True, True))) == pytest.approx(0.0, abs=1e-9)
+    rows, cols = expectation_l1(surface, centre, 0.02, (True, True))
+    assert float(rows) < 0.02 and float(cols) < 0.02
+    far = torch.zeros(1, 16, 16, dtype=torch.float64)
+    far[0, 12, 1] = 1.0
+    assert float(one_peak_kl(far, centre, 0.02, 1.5, (True, True))) > 10
+
+
+def test_loss_weights_and_errors():
+    loss = DPCNLoss(l1_weight=0.0, kl_weight=1.0, kl_translation=3.0)
+    assert loss.weights["l1_rotation"] == 0 and loss.weights["kl_translation"] == 3.0
+    with pytest.raises(ValueError, match="not all zero"):
+        DPCNLoss(l1_weight=0.0, kl_weight=0.0)
+    with pytest.raises(ValueError, match="sigma"):
+        DPCNLoss(sigma=0.0)
+    surface = torch.randn(2, 8, 8, dtype=torch.float64)
+    centre = torch.tensor([[1.0, 2.0], [5.5, 6.5]], dtype=torch.float64)
+    out = DPCNLoss()(surface, centre, surface, centre, torch.tensor([0.1, 0.1], dtype=torch.float64))
+    assert set(out.terms) == {"l1_rotation", "l1_scale", "l1_translation", "kl_rotation_scale", "kl_translation"}
+
+
+def test_gradcheck_losses():
+    surface = torch.randn(1, 6, 7, dtype=torch.float64, requires_grad=True)
+    temperature = torch.tensor(0.5, dtype=torch.float64, requires_grad=True)
+    centre = torch.tensor([[2.3, 4.1]], dtype=torch.float64)
+    assert gradcheck(lambda x, t: one_peak_kl(x, centre, t, 1.0, (True, False)), (surface, temperature))
+    assert gradcheck(lambda x, t: torch.stack(expectation_l1(x, centre, t, (True, False))), (surface, temperature))
+
+
+def test_pose_errors_wrap_the_angle():
+    pred = torch.tensor([[1.0, -2.0, 179.0, 1.1], [0.0, 0.0, -170.0, 0.9]])
+    truth = torch.tensor([[0.0, 0.0, -179.0, 1.0], [3.0, 4.0, 175.0, 1.0]])
+    err = pose_errors(pred, truth)
+    torch.testing.assert_close(err.float(), torch.tensor([[1.0, 2.0, 2.0, 0.1], [3.0, 4.0, 15.0, 0.1]]))
+
+
+def test_summarize_matches_hand_counts(tmp_path):
+    errors = torch.tensor([[0.5, 0.5, 0.2, 0.01], [3.0, 6.0, 0.8, 0.05], [10.0, 0.0, 2.0, 0.3]], dtype=torch.float64)
+    m = summarize(errors, thresholds_for(5.0))
+    assert m["acc_x@5"] == pytest.approx(200 / 3) and m["acc_x@1"] == pytest.approx(100 / 3)
+    assert m["acc_y@5"] == pytest.approx(200 / 3)
+    assert m["acc_rot@1"] == pytest.approx(200 / 3) and m["acc_rot@0.5"] == pytest.approx(100 / 3)
+    assert m["acc_scale@0.2"] == pytest.approx(200 / 3) and m["acc_scale@0.02"] == pytest.approx(100 / 3)
+    assert m["mse_x"] == pytest.approx((0.25 + 9 + 100) / 3)
+    table = format_table([("dpcn", m)])
+    assert "acc_rot@0.5" in table and "dpcn" in table
+    path = write_csv(tmp_path / "m.csv", [("dpcn", m)])
+    header, row = path.read_text().strip().splitlines()
+    assert header.startswith("name,acc_x@5") and row.startswith("dpcn,")
+    assert math.isclose(float(row.split(",")[1]), 200 / 3)
+    assert np.isclose(summarize(errors, thresholds_for(10.0))["acc_x@10"], 100.0)
