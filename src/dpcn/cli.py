@@ -1,7 +1,10 @@
 """Command line: ``python -m dpcn <command> [key=value ...] [-m]`` (Hydra overrides).
 
-Commands: ``predict`` (one pair -> JSON pose). The configuration tree is ``conf/`` at the
-repository root (``conf/config.yaml``); every value there can be overridden.
+Commands: ``fit`` (train DPCN), ``validate``/``test`` (the paper's metrics of a checkpoint or
+of ``model=classical``), ``predict`` (one pair -> JSON pose). The configuration tree is
+``conf/`` at the repository root (``conf/config.yaml``); every value there can be overridden.
+This module only parses, builds (``hydra.utils.instantiate``) and reports: the work is done
+by :mod:`dpcn.training`, :mod:`dpcn.data` and :mod:`dpcn.registration`.
 """
 
 from __future__ import annotations
@@ -16,13 +19,19 @@ from omegaconf import DictConfig, OmegaConf
 
 log = logging.getLogger("dpcn")
 
-COMMANDS = ("predict",)
+COMMANDS = ("fit", "validate", "test", "predict")
 
 USAGE = f"""usage: python -m dpcn <command> [key=value ...] [-m] [--cfg job]
 
 commands: {", ".join(COMMANDS)}
+  fit [data=sim_heterogeneous|sim_homogeneous|sim_dynamic] [model=tiny|paper] [loss=default|l1|kl|paper]
+      [trainer=auto|cpu|gpu|ddp] [experiment=quick] [ckpt_path=.../last.ckpt to resume]
+      trains DPCN; run directory outputs/fit/<time>/ (checkpoints/, metrics.csv, .hydra/)
+  validate|test ckpt_path=model.ckpt [data=...]     (or model=classical, no checkpoint)
+      prints the paper's metrics table and writes metrics_<stage>.csv in the run directory
   predict template=A.png source=B.png [ckpt_path=model.ckpt]
       prints {{"tx", "ty", "angle", "scale", "confidence"}} as JSON
+  -m key=a,b ...   a Hydra multirun sweep (runs under multirun/<time>/<n>/)
 
 Any key of conf/config.yaml can be overridden with key=value (Hydra syntax).
 Errors are one line on stderr (exit status 2); DPCN_DEBUG=1 shows the traceback."""
@@ -71,19 +80,150 @@ def run_predict(cfg: DictConfig) -> None:
     print(pose.to_json())
 
 
-RUNNERS = {"predict": run_predict}
+def _run_dir() -> Path:
+    from hydra.core.hydra_config import HydraConfig
+
+    return Path(HydraConfig.get().runtime.output_dir)
+
+
+def _check_ckpt(path: str | None) -> Path | None:
+    if not path:
+        return None
+    from .training.module import CheckpointError
+
+    p = Path(path)
+    if not p.is_file():
+        raise CheckpointError(f"checkpoint not found: {p}")
+    return p
+
+
+def _trainer(cfg: DictConfig, run_dir: Path, fit: bool):
+    import importlib.util
+
+    from hydra.utils import instantiate
+    from lightning.pytorch.callbacks import LearningRateMonitor, ModelCheckpoint, OnExceptionCheckpoint
+    from lightning.pytorch.loggers import CSVLogger, TensorBoardLogger
+
+    from .training.checkpointing import AtomicCheckpointIO
+
+    loggers = [CSVLogger(save_dir=str(run_dir), name="", version="")]
+    if importlib.util.find_spec("tensorboard") is not None:
+        loggers.append(TensorBoardLogger(save_dir=str(run_dir), name="", version="tb"))
+    callbacks = []
+    if fit:
+        ckpt_dir = run_dir / "checkpoints"
+        callbacks += [
+            ModelCheckpoint(
+                dirpath=ckpt_dir,
+                filename="epoch{epoch:03d}-score{val/score:.2f}",
+                auto_insert_metric_name=False,
+                monitor="val/score",
+                mode="max",
+                save_top_k=1,
+                save_last=True,
+                every_n_train_steps=cfg.checkpoint_every_n_steps,
+            ),
+            OnExceptionCheckpoint(dirpath=ckpt_dir, filename="interrupted"),
+            LearningRateMonitor(logging_interval="step"),
+        ]
+    return instantiate(
+        cfg.trainer,
+        default_root_dir=str(run_dir),
+        logger=loggers,
+        callbacks=callbacks,
+        plugins=[AtomicCheckpointIO()],
+        enable_checkpointing=fit,
+    )
+
+
+def run_fit(cfg: DictConfig) -> None:
+    import lightning as L
+    from hydra.utils import instantiate
+
+    from .training.module import DPCNModule
+
+    ckpt = _check_ckpt(cfg.ckpt_path)
+    L.seed_everything(cfg.seed, workers=True)
+    run_dir = _run_dir()
+    datamodule = instantiate(cfg.data)
+    module = instantiate(cfg.model, _convert_="all")
+    if not isinstance(module, DPCNModule):
+        raise CliError(f"fit trains a DPCN model; model={cfg.model._target_} has nothing to train")
+    if cfg.ckpt_path:
+        from .training.module import load_matcher
+
+        load_matcher(ckpt)  # a clear error now rather than a traceback from inside Lightning
+    log.info("data: %s, run directory: %s", datamodule.name, run_dir)
+    trainer = _trainer(cfg, run_dir, fit=True)
+    trainer.fit(module, datamodule=datamodule, ckpt_path=str(ckpt) if ckpt else None)
+    if trainer.global_rank == 0:
+        best = trainer.checkpoint_callback.best_model_path if trainer.checkpoint_callback else ""
+        print(f"checkpoints: {run_dir / 'checkpoints'} (best: {Path(best).name if best else '-'}, last: last.ckpt)")
+        table = module.report("val", f"{datamodule.name} (val)", run_dir)
+        if table:
+            print(table)
+
+
+def _run_evaluation(cfg: DictConfig, stage: str) -> None:
+    import lightning as L
+    from hydra.utils import instantiate
+
+    from .training.module import ClassicalModule, load_matcher
+
+    L.seed_everything(cfg.seed, workers=True)
+    run_dir = _run_dir()
+    datamodule = instantiate(cfg.data)
+    ckpt = _check_ckpt(cfg.ckpt_path)
+    if ckpt is not None:
+        module = load_matcher(ckpt)
+        module.translation_threshold = float(cfg.data.translation_threshold)
+        name = f"DPCN {ckpt.name}"
+    else:
+        module = instantiate(cfg.model, _convert_="all")
+        if not isinstance(module, ClassicalModule):
+            raise CliError(
+                f"{stage} of a DPCN model needs ckpt_path=PATH (or model=classical for the classical estimator)"
+            )
+        name = "classical"
+    trainer = _trainer(cfg, run_dir, fit=False)
+    getattr(trainer, stage)(module, datamodule=datamodule)
+    if trainer.global_rank == 0:
+        print(module.report(stage, f"{name} on {datamodule.name}", run_dir))
+        print(f"metrics written to {run_dir / f'metrics_{stage}.csv'}")
+
+
+def run_validate(cfg: DictConfig) -> None:
+    _run_evaluation(cfg, "validate")
+
+
+def run_test(cfg: DictConfig) -> None:
+    _run_evaluation(cfg, "test")
+
+
+RUNNERS = {"fit": run_fit, "validate": run_validate, "test": run_test, "predict": run_predict}
+
+
+def _one_line(error: BaseException) -> str:
+    from hydra.errors import InstantiationException
+
+    if isinstance(error, InstantiationException) and error.__cause__ is not None:
+        error = error.__cause__  # the constructor's own message, not Hydra's wrapper
+    text = " ".join(str(error).split())
+    return text or type(error).__name__
 
 
 def _task(cfg: DictConfig) -> None:
+    from hydra.errors import InstantiationException
+
     from .io import DpcnInputError
 
-    command = _task.command  # type: ignore[attr-defined]
+    command = os.environ["DPCN_COMMAND"]
     try:
         RUNNERS[command](cfg)
-    except (CliError, DpcnInputError, FileNotFoundError, ValueError, TypeError) as error:
+    except (CliError, DpcnInputError, FileNotFoundError, ValueError, TypeError, InstantiationException) as error:
         if os.environ.get("DPCN_DEBUG"):
             raise
-        print(f"dpcn {command}: error: {error}", file=sys.stderr)
+        print(f"dpcn {command}: error: {_one_line(error)}", file=sys.stderr)
         sys.exit(2)
 
 
@@ -92,6 +232,13 @@ def main(argv: list[str] | None = None) -> None:
     if not argv or argv[0] in ("-h", "--help", "help"):
         print(USAGE)
         return
+    if (
+        argv[0] not in COMMANDS
+        and os.environ.get("DPCN_COMMAND") in COMMANDS
+        and ("=" in argv[0] or argv[0].startswith("-"))
+    ):
+        # A DDP worker re-launched by Lightning with only the Hydra overrides.
+        argv = [os.environ["DPCN_COMMAND"], *argv]
     command, overrides = argv[0], argv[1:]
     if command not in COMMANDS:
         print(f"dpcn: error: unknown command {command!r}; choose one of: {', '.join(COMMANDS)}", file=sys.stderr)
@@ -110,6 +257,7 @@ def main(argv: list[str] | None = None) -> None:
             "hydra/hydra_logging=none",
             *overrides,
         ]
-    _task.command = command  # type: ignore[attr-defined]
-    sys.argv = [f"dpcn {command}", *overrides]
+    os.environ["DPCN_COMMAND"] = command
+    overrides = [f"hydra.job.name={command}", *overrides]
+    sys.argv = [sys.argv[0], *overrides]
     hydra.main(version_base="1.3", config_path=str(conf), config_name="config")(_task)()

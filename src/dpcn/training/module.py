@@ -1,0 +1,247 @@
+"""Lightning modules: DPCN training/evaluation, and the classical estimator evaluated alike."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any
+
+import lightning as L
+import torch
+from torch import Tensor
+
+from ..estimator import PhaseCorrelationEstimator, unwarp_rotation_scale
+from ..io import prepare_pair
+from ..metrics import format_table, pose_errors, summarize, thresholds_for, write_csv
+from ..models.dpcn import DPCN
+from ..pose import Pose, wrap_angle
+from .losses import DPCNLoss, rotation_scale_target, translation_target
+
+__all__ = ["DPCNModule", "ClassicalModule", "load_matcher", "CheckpointError"]
+
+
+class CheckpointError(ValueError):
+    """A checkpoint that is missing, unreadable or not a dpcn checkpoint."""
+
+
+class _EvaluationMixin:
+    """Shared validation/test logic: per-pair errors gathered over the epoch, the paper's metrics."""
+
+    translation_threshold: float
+
+    def _reset(self) -> None:
+        self._errors: list[Tensor] = []
+
+    def _evaluate_batch(self, batch: dict[str, Tensor]) -> Tensor:
+        pose = self.match(batch["template"], batch["source"])
+        errors = pose_errors(pose.as_tensor().to(batch["pose"].device), batch["pose"])
+        self._errors.append(errors.detach())
+        return errors
+
+    def _finish(self, stage: str) -> dict[str, float]:
+        errors = torch.cat(self._errors) if self._errors else torch.zeros(0, 4, dtype=torch.float64)
+        if self.trainer is not None and self.trainer.world_size > 1:
+            errors = self.all_gather(errors).reshape(-1, 4)
+        thresholds = thresholds_for(self.translation_threshold)
+        metrics = summarize(errors.cpu(), thresholds) if len(errors) else {}
+        for key, value in metrics.items():
+            if key != "n":
+                self.log(f"{stage}/{key}", value, sync_dist=False, rank_zero_only=True)
+        self.last_metrics = metrics
+        self._reset()
+        return metrics
+
+    def report(self, stage: str, name: str, out_dir: str | Path | None) -> str:
+        """Table of the last metrics; also written as ``metrics_<stage>.csv`` in ``out_dir``."""
+        if not getattr(self, "last_metrics", None):
+            return ""
+        rows = [(name, self.last_metrics)]
+        if out_dir is not None:
+            write_csv(Path(out_dir) / f"metrics_{stage}.csv", rows)
+        return format_table(rows)
+
+
+class DPCNModule(_EvaluationMixin, L.LightningModule):
+    """Trains :class:`~dpcn.models.DPCN` end to end from pose supervision.
+
+    Args:
+        net: keyword arguments of :class:`~dpcn.models.DPCN` (architecture, log-polar grid,
+            inference peak settings).
+        temperature: softmax temperature of the training losses (the paper's temperature),
+            one value or ``[rotation_scale, translation]``; correlations are in ``[-1, 1]``.
+        learnable_temperature: learn it (stored as a logarithm).
+        loss: keyword arguments of :class:`~dpcn.training.losses.DPCNLoss`.
+        lr, weight_decay: AdamW settings; the learning rate follows a cosine schedule.
+        teacher_forcing: probability, per batch, of un-warping the source for phase 2 with the
+            ground-truth rotation/scale instead of phase 1's estimate.
+        warmup_epochs: epochs with teacher forcing always on.
+        warp_grad: let phase-2 gradients flow through the un-warp into phase 1.
+        translation_threshold: the paper's translation accuracy threshold (px) for metrics.
+    """
+
+    def __init__(
+        self,
+        net: dict[str, Any] | None = None,
+        temperature: float | list[float] = 0.02,
+        learnable_temperature: bool = True,
+        loss: dict[str, Any] | None = None,
+        lr: float = 3e-3,
+        weight_decay: float = 1e-4,
+        teacher_forcing: float = 0.5,
+        warmup_epochs: int = 1,
+        warp_grad: bool = False,
+        translation_threshold: float = 5.0,
+        max_epochs: int | None = None,
+    ) -> None:
+        super().__init__()
+        self.save_hyperparameters()
+        net = dict(net or {})
+        net.setdefault("train_temperature", temperature if isinstance(temperature, (int, float)) else list(temperature))
+        net.setdefault("learnable_temperature", learnable_temperature)
+        self.model = DPCN(**net)
+        self.loss = DPCNLoss(**(loss or {}))
+        if not 0.0 <= teacher_forcing <= 1.0:
+            raise ValueError(f"teacher_forcing must be in [0, 1], got {teacher_forcing}")
+        self.translation_threshold = translation_threshold
+        self._reset()
+
+    # ---------------------------------------------------------------- inference
+    def match(self, template: Tensor, source: Tensor) -> Pose:
+        """Pose of ``source`` relative to ``template`` (tensors ``(B, C, H, W)`` or arrays)."""
+        if not (isinstance(template, Tensor) and template.ndim == 4):
+            template, source = prepare_pair(template, source, self.device)
+        return self.model.match(template.to(self.device), source.to(self.device))
+
+    def forward(self, template: Tensor, source: Tensor) -> Pose:
+        return self.match(template, source)
+
+    # ---------------------------------------------------------------- training
+    def _use_ground_truth(self, batch_size: int) -> Tensor:
+        if self.current_epoch < self.hparams.warmup_epochs:
+            return torch.ones(batch_size, dtype=torch.bool, device=self.device)
+        return torch.rand(batch_size, device=self.device) < self.hparams.teacher_forcing
+
+    def training_step(self, batch: dict[str, Tensor], batch_idx: int) -> Tensor:
+        template, source, gt = batch["template"], batch["source"], batch["pose"]
+        self.model.check_inputs(template, source)
+        tx, ty, angle, scale = gt.unbind(dim=1)
+        rs, _ = self.model.rotation_scale(template, source)
+
+        # Phase 1's angle is known modulo 180 degrees; take the half-turn closest to the truth
+        # so phase 2 learns on upright sources (the half-turn is settled at inference).
+        predicted = rs.angle + 180.0 * (wrap_angle(angle - rs.angle).abs() > 90.0)
+        predicted_scale = rs.scale
+        if not self.hparams.warp_grad:
+            predicted, predicted_scale = predicted.detach(), predicted_scale.detach()
+        forced = self._use_ground_truth(template.shape[0])
+        unwarp_angle = torch.where(forced, angle, predicted)
+        unwarp_scale = torch.where(forced, scale, predicted_scale)
+        unwarped = unwarp_rotation_scale(source, unwarp_angle, unwarp_scale)
+        tr, _ = self.model.translation(template, unwarped, unwarp_angle, unwarp_scale, resolve_180=False)
+
+        m = self.model
+        rs_centre = rotation_scale_target(angle, scale, m.n_angles, m.n_radii, m.radius_step)
+        t_centre = translation_target(tx, ty, unwarp_angle.detach(), unwarp_scale.detach(), template.shape[-2:])
+        loss = self.loss(rs.surface, rs_centre, tr.surface, t_centre, m.train_temperature)
+        batch_size = template.shape[0]
+        self.log("train/loss", loss.total, prog_bar=True, batch_size=batch_size)
+        for name, value in loss.terms.items():
+            self.log(f"train/{name}", value, batch_size=batch_size)
+        self.log("train/temperature_rs", m.train_temperature[0], batch_size=batch_size)
+        self.log("train/temperature_t", m.train_temperature[1], batch_size=batch_size)
+        return loss.total
+
+    def configure_optimizers(self):
+        optimizer = torch.optim.AdamW(self.parameters(), lr=self.hparams.lr, weight_decay=self.hparams.weight_decay)
+        total = self.trainer.estimated_stepping_batches if self.trainer is not None else None
+        if not total or not math.isfinite(total):
+            return optimizer
+        scheduler = torch.optim.lr_scheduler.OneCycleLR(
+            optimizer, max_lr=self.hparams.lr, total_steps=int(total), pct_start=0.1, anneal_strategy="cos"
+        )
+        return {"optimizer": optimizer, "lr_scheduler": {"scheduler": scheduler, "interval": "step"}}
+
+    # ---------------------------------------------------------------- evaluation
+    def on_validation_epoch_start(self) -> None:
+        self._reset()
+
+    def validation_step(self, batch: dict[str, Tensor], batch_idx: int) -> None:
+        self._evaluate_batch(batch)
+
+    def on_validation_epoch_end(self) -> None:
+        metrics = self._finish("val")
+        if metrics:
+            # one number to select checkpoints by: the mean of the strict accuracies
+            strict = [v for k, v in metrics.items() if k in ("acc_x@1", "acc_y@1", "acc_rot@0.5", "acc_scale@0.02")]
+            self.log("val/score", sum(strict) / len(strict), prog_bar=True)
+
+    def on_test_epoch_start(self) -> None:
+        self._reset()
+
+    def test_step(self, batch: dict[str, Tensor], batch_idx: int) -> None:
+        self._evaluate_batch(batch)
+
+    def on_test_epoch_end(self) -> None:
+        self._finish("test")
+
+
+class ClassicalModule(_EvaluationMixin, L.LightningModule):
+    """The classical estimator (no learning) behind the same validate/test interface."""
+
+    def __init__(self, translation_threshold: float = 5.0, **options: Any) -> None:
+        super().__init__()
+        self.save_hyperparameters()
+        self.estimator = PhaseCorrelationEstimator(**options)
+        self.translation_threshold = translation_threshold
+        self._reset()
+
+    def match(self, template: Tensor, source: Tensor) -> Pose:
+        if not (isinstance(template, Tensor) and template.ndim == 4):
+            template, source = prepare_pair(template, source, self.device)
+        with torch.no_grad():
+            return self.estimator(template, source)
+
+    def on_validation_epoch_start(self) -> None:
+        self._reset()
+
+    def validation_step(self, batch: dict[str, Tensor], batch_idx: int) -> None:
+        self._evaluate_batch(batch)
+
+    def on_validation_epoch_end(self) -> None:
+        self._finish("val")
+
+    def on_test_epoch_start(self) -> None:
+        self._reset()
+
+    def test_step(self, batch: dict[str, Tensor], batch_idx: int) -> None:
+        self._evaluate_batch(batch)
+
+    def on_test_epoch_end(self) -> None:
+        self._finish("test")
+
+    def configure_optimizers(self):  # nothing to train
+        return None
+
+
+def load_matcher(ckpt_path: str | Path, map_location: str | torch.device = "cpu") -> DPCNModule:
+    """Load a DPCN checkpoint ready for ``.match(template, source) -> Pose`` (eval mode).
+
+    Raises :class:`CheckpointError` naming the problem for a missing, corrupt or foreign file.
+    """
+    path = Path(ckpt_path)
+    if not path.is_file():
+        raise CheckpointError(f"checkpoint not found: {path}")
+    try:
+        checkpoint = torch.load(path, map_location=map_location, weights_only=False)
+    except Exception as error:  # torch raises many types for a damaged file
+        raise CheckpointError(f"cannot read checkpoint {path} (corrupt or not a torch file): {error}") from None
+    if not isinstance(checkpoint, dict) or "state_dict" not in checkpoint or "hyper_parameters" not in checkpoint:
+        raise CheckpointError(f"{path} is not a Lightning checkpoint of a dpcn model")
+    if not any(key.startswith("model.") for key in checkpoint["state_dict"]):
+        raise CheckpointError(f"{path} holds no DPCN weights (was it written by `dpcn fit`?)")
+    try:
+        module = DPCNModule(**checkpoint["hyper_parameters"])
+        module.load_state_dict(checkpoint["state_dict"])
+    except (TypeError, RuntimeError, ValueError) as error:
+        raise CheckpointError(f"checkpoint {path} does not fit this version of dpcn: {error}") from None
+    return module.to(map_location).eval()
