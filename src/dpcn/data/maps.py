@@ -1,0 +1,67 @@
+"""Factories that the data configs call: map pairs (real folders or the built-in scene) and
+pre-cut CSV pairs, with the ``(length=, seed=)`` interface of :class:`PairDataModule`."""
+
+from __future__ import annotations
+
+import logging
+import os
+import shutil
+import tempfile
+from pathlib import Path
+from typing import Any
+
+from .aeroground import CsvPairs, DataError, MapPairs
+
+__all__ = ["BUILTIN_VERSION", "builtin_root", "map_pairs", "csv_pairs"]
+
+log = logging.getLogger("dpcn")
+
+BUILTIN_VERSION = "v1"
+_announced = False
+
+
+def builtin_root(cache_dir: str | Path | None = None) -> Path:
+    """The built-in procedural scenes (three 1024x1024 scenes, generated once and cached).
+
+    The cache is ``$DPCN_CACHE`` or ``~/.cache/dpcn``; generation takes a few seconds and is
+    written to a temporary folder first, so concurrent or interrupted runs never see half a
+    data set.
+    """
+    from .scene import make_dataset
+
+    base = Path(cache_dir or os.environ.get("DPCN_CACHE") or Path.home() / ".cache" / "dpcn")
+    root = base / f"builtin-scenes-{BUILTIN_VERSION}"
+    if (root / "scene_c" / "regions.json").is_file():
+        return root
+    base.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=".builtin-", dir=base))
+    try:
+        make_dataset(tmp, n_scenes=3, seed=0)
+        try:
+            tmp.rename(root)
+        except OSError:  # another process won the race
+            if not (root / "scene_c" / "regions.json").is_file():
+                raise
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return root
+
+
+def map_pairs(length: int, seed: int, root: str | Path | None = None, **kwargs: Any) -> MapPairs:
+    """:class:`MapPairs` over ``root``, or over the built-in procedural scenes if ``root`` is None."""
+    global _announced
+    if root is None:
+        root = builtin_root()
+        if not _announced:
+            log.info("no data.root given: using the built-in procedural scenes in %s (python -m dpcn make-data)", root)
+            _announced = True
+    elif not Path(root).exists():
+        raise DataError(f"data.root does not exist: {root}")
+    return MapPairs(root, length=length, seed=seed, **kwargs)
+
+
+def csv_pairs(length: int, seed: int, csv_path: str | Path | None = None, **kwargs: Any) -> CsvPairs:
+    """:class:`CsvPairs` (pre-cut pairs); ``length``/``seed`` are ignored: the CSV fixes the pairs."""
+    if csv_path is None:
+        raise DataError("data=csv needs data.train_csv, data.val_csv and data.test_csv (paths to ground-truth CSVs)")
+    return CsvPairs(csv_path, **kwargs)

@@ -1,0 +1,124 @@
+"""The data configs composed for real: map pairs (own folders and built-in), CSV pairs, make-data."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+from hydra.utils import instantiate
+
+from dpcn.data.aeroground import DataError
+from dpcn.data.scene import make_dataset
+
+from .conftest import cv2_warp, photo
+from .test_training_cli import dpcn
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def compose_data(*overrides: str):
+    with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
+        return compose("config", overrides=list(overrides))
+
+
+@pytest.fixture(scope="module")
+def maps_root(tmp_path_factory) -> Path:
+    return make_dataset(tmp_path_factory.mktemp("maps"), n_scenes=3, seed=3, size=(720, 720))
+
+
+@pytest.mark.parametrize("pair", ["l2d", "l2sat", "s2d", "s2sat"])
+def test_map_pair_configs_read_a_root(maps_root, pair):
+    cfg = compose_data(f"data={pair}", f"data.root={maps_root}", "image_size=96", "data.dataset.translation=20")
+    dm = instantiate(cfg.data)
+    dm.setup("fit")
+    dm.setup("test")
+    item = dm.datasets["train"][0]
+    assert item["template"].shape == (1, 96, 96) and item["source"].shape == (1, 96, 96)
+    assert dm.translation_threshold == 10.0
+    assert len(dm.datasets["test"]) == 500
+
+
+def test_map_pairs_geometry_follows_the_pose_convention(tmp_path):
+    """Same raster under two modality names: the source must be cv2.warpAffine of the template."""
+    image = (photo("astronaut", (400, 400)) * 255).astype(np.uint8)
+    for name in ("lidar", "drone"):
+        folder = tmp_path / "scene"
+        folder.mkdir(exist_ok=True)
+        cv2.imwrite(str(folder / f"{name}.png"), image)
+    cfg = compose_data("data=l2d", f"data.root={tmp_path}", "image_size=96", "data.dataset.translation=10",
+                       "data.dataset.scale=[0.9,1.1]", "data.train_scenes=null")  # fmt: skip
+    dm = instantiate(cfg.data)
+    dm.setup("fit")
+    for i in range(3):
+        item = dm.datasets["train"][i]
+        tx, ty, angle, scale = item["pose"].tolist()
+        expected = cv2_warp(item["template"][0].numpy(), tx, ty, angle, scale)
+        valid = cv2_warp(np.ones((96, 96), np.float32), tx, ty, angle, scale) > 0.999
+        assert np.abs(expected - item["source"][0].numpy())[valid].mean() < 0.02
+
+
+def test_builtin_scene_when_no_root(tmp_path, monkeypatch, caplog):
+    monkeypatch.setenv("DPCN_CACHE", str(tmp_path))
+    import dpcn.data.maps as maps
+
+    monkeypatch.setattr(maps, "_announced", False)
+    cfg = compose_data("data=l2sat", "image_size=64", "data.dataset.translation=10")
+    dm = instantiate(cfg.data)
+    with caplog.at_level(logging.INFO, logger="dpcn"):
+        dm.setup("fit")
+    assert any("built-in procedural scenes" in r.getMessage() for r in caplog.records)
+    root = tmp_path / f"builtin-scenes-{maps.BUILTIN_VERSION}"
+    assert sorted(p.name for p in root.iterdir() if p.is_dir()) == ["scene_a", "scene_b", "scene_c"]
+    assert dm.datasets["train"][0]["template"].shape == (1, 64, 64)
+
+
+def test_missing_root_is_a_clear_error(tmp_path):
+    cfg = compose_data("data=l2sat", f"data.root={tmp_path / 'nope'}")
+    dm = instantiate(cfg.data)
+    with pytest.raises(DataError, match="data.root does not exist"):
+        dm.setup("fit")
+
+
+def test_csv_config(tmp_path):
+    template = photo("camera", (64, 64))
+    (tmp_path / "template").mkdir()
+    (tmp_path / "source").mkdir()
+    rows = ["name,rotation,shift_x,shift_y,scale"]
+    for i, (angle, tx, ty) in enumerate([(10.0, 3.0, -2.0), (-40.0, 0.5, 4.0)]):
+        cv2.imwrite(str(tmp_path / "template" / f"p{i}.png"), (template * 255).astype(np.uint8))
+        cv2.imwrite(
+            str(tmp_path / "source" / f"p{i}.png"), (cv2_warp(template, tx, ty, angle, 1.0) * 255).astype(np.uint8)
+        )
+        rows.append(f"p{i},{angle},{tx},{ty},1.0")
+    (tmp_path / "gt.csv").write_text("\n".join(rows) + "\n")
+    csv = str(tmp_path / "gt.csv")
+    cfg = compose_data("data=csv", f"data.train_csv={csv}", f"data.val_csv={csv}", f"data.test_csv={csv}")
+    dm = instantiate(cfg.data)
+    dm.setup("fit")
+    item = dm.datasets["val"][1]
+    torch.testing.assert_close(item["pose"], torch.tensor([0.5, 4.0, -40.0, 1.0]))
+    cfg = compose_data("data=csv")
+    with pytest.raises(DataError, match="needs data.train_csv"):
+        instantiate(cfg.data).setup("fit")
+
+
+def test_make_data_cli(tmp_path):
+    out = dpcn("make-data", f"out={tmp_path / 'maps'}", "n_scenes=1", "scene_size=640", cwd=tmp_path)
+    assert "wrote 1 scenes (scene_a)" in out.stdout
+    files = sorted(p.name for p in (tmp_path / "maps" / "scene_a").iterdir())
+    assert files == [
+        "drone.png",
+        "lidar.png",
+        "lidar_mask.png",
+        "regions.json",
+        "satellite.png",
+        "stereo.png",
+        "stereo_mask.png",
+    ]
+    again = dpcn("make-data", f"out={tmp_path / 'maps'}", cwd=tmp_path, check=False)
+    assert again.returncode == 2 and "not empty" in again.stderr
