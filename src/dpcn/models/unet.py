@@ -47,14 +47,21 @@ class UNet(nn.Module):
     Outputs go through softplus: the paper keeps features positive so that the correlation
     has no negative peaks to confuse with matches.
 
-    A 1x1 convolution from the input joins the head, and the head starts at zero: an
-    untrained U-Net is ``softplus(mean of the input channels)``, a monotonic (almost linear on
-    ``[0, 1]``) image, so an untrained DPCN *is* classical phase correlation and training
-    learns what to add to it, instead of first having to recover the image from noise.
+    ``input_skip=True`` adds a 1x1 convolution from the input to the head and starts the head
+    at zero, so an untrained U-Net is ``softplus(mean of the input channels)`` and an untrained
+    DPCN *is* classical phase correlation. That helps when the two sensors already agree
+    roughly; on strongly different ones (sensor-fixed texture and banding to be cancelled)
+    it trained slower than a fresh extractor, hence off by default.
     """
 
     def __init__(
-        self, in_channels: int = 1, out_channels: int = 1, base_channels: int = 16, depth: int = 4, norm: str = "group"
+        self,
+        in_channels: int = 1,
+        out_channels: int = 1,
+        base_channels: int = 16,
+        depth: int = 4,
+        norm: str = "group",
+        input_skip: bool = False,
     ) -> None:
         super().__init__()
         if depth < 0 or base_channels < 1 or in_channels < 1 or out_channels < 1:
@@ -67,11 +74,12 @@ class UNet(nn.Module):
         self.down = nn.ModuleList(_block(widths[i], widths[i + 1], norm) for i in range(depth))
         self.up = nn.ModuleList(_block(widths[i + 1] + widths[i], widths[i], norm) for i in reversed(range(depth)))
         self.head = nn.Conv2d(widths[0], out_channels, 1)
-        self.skip = nn.Conv2d(in_channels, out_channels, 1)
-        nn.init.zeros_(self.head.weight)
-        nn.init.zeros_(self.head.bias)
-        nn.init.constant_(self.skip.weight, 1.0 / in_channels)
-        nn.init.zeros_(self.skip.bias)
+        self.skip = nn.Conv2d(in_channels, out_channels, 1) if input_skip else None
+        if self.skip is not None:
+            nn.init.zeros_(self.head.weight)
+            nn.init.zeros_(self.head.bias)
+            nn.init.constant_(self.skip.weight, 1.0 / in_channels)
+            nn.init.zeros_(self.skip.bias)
         self.depth = depth
         # Channels-last: with a few channels at full resolution, oneDNN's convolutions (and
         # above all their backward pass) run 3-5x faster in this layout on CPUs.
@@ -87,4 +95,5 @@ class UNet(nn.Module):
             skip = skips.pop()
             y = F.interpolate(y, size=skip.shape[-2:], mode="bilinear", align_corners=False)
             y = block(torch.cat([y, skip], dim=1))
-        return F.softplus(self.head(y) + self.skip(x)).contiguous()
+        out = self.head(y) if self.skip is None else self.head(y) + self.skip(x)
+        return F.softplus(out).contiguous()
