@@ -19,7 +19,7 @@ from omegaconf import DictConfig, OmegaConf
 
 log = logging.getLogger("dpcn")
 
-COMMANDS = ("fit", "validate", "test", "predict")
+COMMANDS = ("fit", "validate", "test", "predict", "make-data")
 
 USAGE = f"""usage: python -m dpcn <command> [key=value ...] [-m] [--cfg job]
 
@@ -31,6 +31,9 @@ commands: {", ".join(COMMANDS)}
       prints the paper's metrics table and writes metrics_<stage>.csv in the run directory
   predict template=A.png source=B.png [ckpt_path=model.ckpt]
       prints {{"tx", "ty", "angle", "scale", "confidence"}} as JSON
+  make-data out=DIR [n_scenes=3] [scene_size=1024] [seed=42]
+      writes procedural scenes (lidar, stereo, drone, satellite + masks + regions.json) in
+      the layout that data=l2d|l2sat|s2d|s2sat data.root=DIR reads
   -m key=a,b ...   a Hydra multirun sweep (runs under multirun/<time>/<n>/)
 
 Any key of conf/config.yaml can be overridden with key=value (Hydra syntax).
@@ -101,7 +104,7 @@ def _trainer(cfg: DictConfig, run_dir: Path, fit: bool):
     import importlib.util
 
     from hydra.utils import instantiate
-    from lightning.pytorch.callbacks import LearningRateMonitor, ModelCheckpoint, OnExceptionCheckpoint
+    from lightning.pytorch.callbacks import LearningRateMonitor, ModelCheckpoint
     from lightning.pytorch.loggers import CSVLogger, TensorBoardLogger
 
     from .training.checkpointing import AtomicCheckpointIO
@@ -112,18 +115,29 @@ def _trainer(cfg: DictConfig, run_dir: Path, fit: bool):
     callbacks = []
     if fit:
         ckpt_dir = run_dir / "checkpoints"
+        every = cfg.checkpoint_every_n_steps
         callbacks += [
+            # last.ckpt: the latest state, every epoch (or every N steps) and whenever the run
+            # stops on an exception, Ctrl-C or SIGTERM; `fit ckpt_path=.../last.ckpt` resumes it.
             ModelCheckpoint(
                 dirpath=ckpt_dir,
-                filename="epoch{epoch:03d}-score{val/score:.2f}",
+                filename="last",
+                monitor=None,
+                save_top_k=1,
+                enable_version_counter=False,
+                every_n_train_steps=every,
+                every_n_epochs=None if every else 1,
+                save_on_exception=True,
+            ),
+            # best-*.ckpt: the best validation score so far (mean of the strict accuracies).
+            ModelCheckpoint(
+                dirpath=ckpt_dir,
+                filename="best-epoch{epoch:03d}-score{val/score:.2f}",
                 auto_insert_metric_name=False,
                 monitor="val/score",
                 mode="max",
                 save_top_k=1,
-                save_last=True,
-                every_n_train_steps=cfg.checkpoint_every_n_steps,
             ),
-            OnExceptionCheckpoint(dirpath=ckpt_dir, filename="interrupted"),
             LearningRateMonitor(logging_interval="step"),
         ]
     return instantiate(
@@ -157,7 +171,7 @@ def run_fit(cfg: DictConfig) -> None:
     trainer = _trainer(cfg, run_dir, fit=True)
     trainer.fit(module, datamodule=datamodule, ckpt_path=str(ckpt) if ckpt else None)
     if trainer.global_rank == 0:
-        best = trainer.checkpoint_callback.best_model_path if trainer.checkpoint_callback else ""
+        best = next((c.best_model_path for c in trainer.checkpoint_callbacks if c.monitor), "")
         print(f"checkpoints: {run_dir / 'checkpoints'} (best: {Path(best).name if best else '-'}, last: last.ckpt)")
         table = module.report("val", f"{datamodule.name} (val)", run_dir)
         if table:
@@ -192,6 +206,20 @@ def _run_evaluation(cfg: DictConfig, stage: str) -> None:
         print(f"metrics written to {run_dir / f'metrics_{stage}.csv'}")
 
 
+def run_make_data(cfg: DictConfig) -> None:
+    from .data.scene import make_dataset
+
+    if not cfg.out:
+        raise CliError("make-data needs out=DIR")
+    out = Path(cfg.out)
+    if out.exists() and any(out.iterdir()):
+        raise CliError(f"{out} exists and is not empty; choose a new folder")
+    size = int(cfg.scene_size)
+    root = make_dataset(out, n_scenes=int(cfg.n_scenes), seed=int(cfg.seed), size=(size, size))
+    scenes = sorted(p.name for p in root.iterdir() if p.is_dir())
+    print(f"wrote {len(scenes)} scenes ({', '.join(scenes)}) of {size}x{size} px to {root}")
+
+
 def run_validate(cfg: DictConfig) -> None:
     _run_evaluation(cfg, "validate")
 
@@ -200,7 +228,13 @@ def run_test(cfg: DictConfig) -> None:
     _run_evaluation(cfg, "test")
 
 
-RUNNERS = {"fit": run_fit, "validate": run_validate, "test": run_test, "predict": run_predict}
+RUNNERS = {
+    "fit": run_fit,
+    "validate": run_validate,
+    "test": run_test,
+    "predict": run_predict,
+    "make-data": run_make_data,
+}
 
 
 def _one_line(error: BaseException) -> str:
@@ -208,8 +242,8 @@ def _one_line(error: BaseException) -> str:
 
     if isinstance(error, InstantiationException) and error.__cause__ is not None:
         error = error.__cause__  # the constructor's own message, not Hydra's wrapper
-    text = " ".join(str(error).split())
-    return text or type(error).__name__
+    text = str(error).split("Config search path:")[0]  # Hydra's lookup details: noise here
+    return " ".join(text.split()) or type(error).__name__
 
 
 def _task(cfg: DictConfig) -> None:
@@ -225,6 +259,58 @@ def _task(cfg: DictConfig) -> None:
             raise
         print(f"dpcn {command}: error: {_one_line(error)}", file=sys.stderr)
         sys.exit(2)
+
+
+# Hydra's command-line flags that take a value (``--cfg job``); the others stand alone (``-m``).
+_FLAGS_WITH_VALUE = {"--cfg", "-c", "--package", "-p", "--config-path", "-cp", "--config-name", "-cn",
+                     "--config-dir", "-cd", "--experimental-rerun", "--info", "-i"}  # fmt: skip
+
+
+def _split_hydra_flags(args: list[str]) -> tuple[list[str], list[str]]:
+    """Separate Hydra's flags from ``key=value`` overrides, so that flags may come anywhere
+    (``fit data=l2d -m model.temperature=1,10``): Hydra's own parser wants them first."""
+    flags, overrides = [], []
+    i = 0
+    while i < len(args):
+        arg = args[i]
+        if arg.startswith("-"):  # overrides never start with "-" (keys, "+key", "~key")
+            flags.append(arg)
+            takes_value = arg in _FLAGS_WITH_VALUE and i + 1 < len(args) and not args[i + 1].startswith("-")
+            if takes_value and (arg not in ("--info", "-i") or "=" not in args[i + 1]):
+                flags.append(args[i + 1])
+                i += 1
+        else:
+            overrides.append(arg)
+        i += 1
+    return flags, overrides
+
+
+def _check_overrides(conf: Path, overrides: list[str]) -> None:
+    """Compose the configuration once with the user's overrides (the first value of each
+    sweep) so that an unknown key, group or option is one clear line, not Hydra's report."""
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    parsed = [o for o in OverridesParser.create().parse_overrides(overrides) if not _is_hydra_key(o.get_key_element())]
+    # Each sweep value is tried once, the other sweeps at their first value.
+    choices = [
+        [f"{o.get_key_element()}={v}" for v in o.sweep_string_iterator()] if o.is_sweep_override() else [o.input_line]
+        for o in parsed
+    ]
+    first = [c[0] for c in choices if c]
+    trials = [first] + [[*first[:i], v, *first[i + 1 :]] for i, c in enumerate(choices) for v in c[1:]]
+    try:
+        with initialize_config_dir(config_dir=str(conf), version_base="1.3"):
+            for trial in trials:
+                compose("config", overrides=trial)
+    finally:
+        GlobalHydra.instance().clear()
+
+
+def _is_hydra_key(key: str) -> bool:
+    """Hydra's own settings (``hydra.run.dir``, ``hydra/launcher``) are Hydra's to check."""
+    return key.lstrip("+~").startswith("hydra")
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -248,7 +334,7 @@ def main(argv: list[str] | None = None) -> None:
     except CliError as error:
         print(f"dpcn: error: {error}", file=sys.stderr)
         sys.exit(2)
-    if command == "predict":
+    if command in ("predict", "make-data"):
         # A query, not a run: no run directory, no log files, only the JSON on stdout.
         overrides = [
             "hydra.run.dir=.",
@@ -258,6 +344,19 @@ def main(argv: list[str] | None = None) -> None:
             *overrides,
         ]
     os.environ["DPCN_COMMAND"] = command
-    overrides = [f"hydra.job.name={command}", *overrides]
-    sys.argv = [sys.argv[0], *overrides]
-    hydra.main(version_base="1.3", config_path=str(conf), config_name="config")(_task)()
+    flags, overrides = _split_hydra_flags(overrides)
+    try:
+        _check_overrides(conf, overrides)
+    except Exception as error:  # Hydra's parse/composition errors have several types
+        if os.environ.get("DPCN_DEBUG"):
+            raise
+        print(f"dpcn {command}: error: {_one_line(error)}", file=sys.stderr)
+        sys.exit(2)
+    sys.argv = [sys.argv[0], *flags, f"hydra.job.name={command}", *overrides]
+    try:
+        hydra.main(version_base="1.3", config_path=str(conf), config_name="config")(_task)()
+    except ValueError as error:  # Hydra's check of its own flags ("only one of --run, --multirun ...")
+        if os.environ.get("DPCN_DEBUG"):
+            raise
+        print(f"dpcn {command}: error: {_one_line(error)}", file=sys.stderr)
+        sys.exit(2)

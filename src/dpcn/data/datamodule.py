@@ -9,7 +9,7 @@ import lightning as L
 import torch
 from torch.utils.data import DataLoader, Dataset, Sampler
 
-__all__ = ["EpochBlockSampler", "PairDataModule"]
+__all__ = ["EpochBlockSampler", "PairDataModule", "ResumableDataLoader"]
 
 
 class EpochBlockSampler(Sampler[int]):
@@ -27,17 +27,57 @@ class EpochBlockSampler(Sampler[int]):
         self.epoch_size = min(epoch_size or dataset_length, dataset_length)
         self.rank, self.world_size = rank, world_size
         self.epoch = 0
+        self.skip: tuple[int, int] | None = None  # (epoch, items of it already consumed)
 
     def set_epoch(self, epoch: int) -> None:
         self.epoch = epoch
 
     def __iter__(self) -> Iterator[int]:
         start = (self.epoch * self.epoch_size) % self.length
-        for i in range(self.rank, self.epoch_size, self.world_size):
+        first = 0
+        if self.skip is not None:
+            if self.skip[0] == self.epoch:
+                first = self.skip[1]
+            self.skip = None
+        for i in list(range(self.rank, self.epoch_size, self.world_size))[first:]:
             yield (start + i) % self.length
 
     def __len__(self) -> int:
         return len(range(self.rank, self.epoch_size, self.world_size))
+
+
+class ResumableDataLoader(DataLoader):
+    """A DataLoader over an :class:`EpochBlockSampler` that Lightning checkpoints mid-epoch.
+
+    Its state is the epoch and the number of its batches whose optimiser step is done;
+    loading that state makes the next iteration of the same epoch skip them (indices only:
+    nothing is generated), so a run resumed from a mid-epoch checkpoint sees exactly the rest
+    of that epoch, the interrupted batch included.
+
+    Args:
+        steps_done: returns the number of batches of the current epoch already applied (the
+            training loop's count); without it, the batches handed out are counted, which is
+            one too many when a run is interrupted inside a step.
+    """
+
+    def __init__(self, *args: Any, steps_done: Callable[[], int] | None = None, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self._steps_done = steps_done
+        self._served = 0
+
+    def __iter__(self) -> Iterator[Any]:
+        skip = self.sampler.skip
+        self._served = skip[1] // self.batch_size if skip is not None and skip[0] == self.sampler.epoch else 0
+        for batch in super().__iter__():
+            self._served += 1
+            yield batch
+
+    def state_dict(self) -> dict[str, int]:
+        done = self._served if self._steps_done is None else min(self._served, self._steps_done())
+        return {"epoch": self.sampler.epoch, "batches": done}
+
+    def load_state_dict(self, state: dict[str, int]) -> None:
+        self.sampler.skip = (int(state["epoch"]), int(state["batches"]) * self.batch_size)
 
 
 class PairDataModule(L.LightningDataModule):
@@ -53,6 +93,8 @@ class PairDataModule(L.LightningDataModule):
             for map data sets with regions).
         batch_size, num_workers: data loading.
         translation_threshold: the paper's translation threshold (px) for this data.
+        **references: values that a data config only interpolates into ``dataset`` or
+            ``split_kwargs`` (``root``, scene lists, CSV paths); kept for the record.
     """
 
     def __init__(
@@ -68,6 +110,7 @@ class PairDataModule(L.LightningDataModule):
         num_workers: int = 0,
         translation_threshold: float = 5.0,
         name: str = "pairs",
+        **references: Any,
     ) -> None:
         super().__init__()
         if batch_size < 1 or epoch_size < 1 or val_length < 1 or test_length < 1:
@@ -83,6 +126,7 @@ class PairDataModule(L.LightningDataModule):
         self.batch_size, self.num_workers = batch_size, num_workers
         self.translation_threshold = translation_threshold
         self.name = name
+        self.references = references
         self.datasets: dict[str, Dataset] = {}
 
     def build(self, split: str) -> Dataset:
@@ -100,8 +144,13 @@ class PairDataModule(L.LightningDataModule):
         dataset = self.build(split)
         rank, world = (self.trainer.global_rank, self.trainer.world_size) if self.trainer is not None else (0, 1)
         sampler = EpochBlockSampler(len(dataset), epoch_size, rank, world)
-        return DataLoader(
+        extra: dict[str, Any] = {}
+        if split == "train" and self.trainer is not None:
+            progress = self.trainer.fit_loop.epoch_loop.batch_progress
+            extra["steps_done"] = lambda: progress.current.processed
+        return (ResumableDataLoader if split == "train" else DataLoader)(
             dataset,
+            **extra,
             batch_size=self.batch_size,
             sampler=sampler,
             num_workers=self.num_workers,

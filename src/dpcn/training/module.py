@@ -20,6 +20,16 @@ from .losses import DPCNLoss, rotation_scale_target, translation_target
 __all__ = ["DPCNModule", "ClassicalModule", "load_matcher", "CheckpointError"]
 
 
+def _warmup_cosine(step: int, total: int, warmup: float = 0.1, floor: float = 0.04) -> float:
+    """Learning-rate factor: cosine ramp from ``floor`` to 1 over the first ``warmup`` of the
+    run, then cosine decay to 0 at ``total`` steps."""
+    ramp = max(1, int(warmup * total))
+    if step < ramp:
+        return floor + (1.0 - floor) * 0.5 * (1.0 - math.cos(math.pi * step / ramp))
+    progress = min(1.0, (step - ramp) / max(1, total - ramp))
+    return 0.5 * (1.0 + math.cos(math.pi * progress))
+
+
 class CheckpointError(ValueError):
     """A checkpoint that is missing, unreadable or not a dpcn checkpoint."""
 
@@ -85,7 +95,7 @@ class DPCNModule(_EvaluationMixin, L.LightningModule):
         temperature: float | list[float] = 0.02,
         learnable_temperature: bool = True,
         loss: dict[str, Any] | None = None,
-        lr: float = 3e-3,
+        lr: float = 1e-2,
         weight_decay: float = 1e-4,
         teacher_forcing: float = 0.5,
         warmup_epochs: int = 1,
@@ -119,7 +129,11 @@ class DPCNModule(_EvaluationMixin, L.LightningModule):
     def _use_ground_truth(self, batch_size: int) -> Tensor:
         if self.current_epoch < self.hparams.warmup_epochs:
             return torch.ones(batch_size, dtype=torch.bool, device=self.device)
-        return torch.rand(batch_size, device=self.device) < self.hparams.teacher_forcing
+        # Drawn from (global step, rank) alone, not from the global RNG: a run resumed from any
+        # checkpoint makes the same draws as the uninterrupted run.
+        rank = self.trainer.global_rank if self._trainer is not None else 0
+        generator = torch.Generator().manual_seed(self.global_step * 1009 + rank)
+        return (torch.rand(batch_size, generator=generator) < self.hparams.teacher_forcing).to(self.device)
 
     def training_step(self, batch: dict[str, Tensor], batch_idx: int) -> Tensor:
         template, source, gt = batch["template"], batch["source"], batch["pose"]
@@ -153,12 +167,23 @@ class DPCNModule(_EvaluationMixin, L.LightningModule):
 
     def configure_optimizers(self):
         optimizer = torch.optim.AdamW(self.parameters(), lr=self.hparams.lr, weight_decay=self.hparams.weight_decay)
-        total = self.trainer.estimated_stepping_batches if self.trainer is not None else None
-        if not total or not math.isfinite(total):
-            return optimizer
-        scheduler = torch.optim.lr_scheduler.OneCycleLR(
-            optimizer, max_lr=self.hparams.lr, total_steps=int(total), pct_start=0.1, anneal_strategy="cos"
-        )
+        trainer = self._trainer
+        if trainer is None or (trainer.max_steps == -1 and trainer.max_epochs in (None, -1)):
+            return optimizer  # no known end: constant learning rate
+        total: list[int] = []
+
+        def factor(step: int) -> float:
+            # The schedule is a pure function of the step and the run's length, and nothing of
+            # it goes into the checkpoint: a run resumed with a larger max_epochs stretches it.
+            # The length is read at the first step, not here: Lightning builds the training
+            # loader to count it, which here would be before a resumed run restores its place.
+            if step == 0:
+                return _warmup_cosine(0, 1)
+            if not total:
+                total.append(int(trainer.estimated_stepping_batches))
+            return _warmup_cosine(step, total[0])
+
+        scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, factor)
         return {"optimizer": optimizer, "lr_scheduler": {"scheduler": scheduler, "interval": "step"}}
 
     # ---------------------------------------------------------------- evaluation

@@ -1,0 +1,220 @@
+"""Real Lightning runs through the real CLI and the real Hydra configs, on tiny settings."""
+
+from __future__ import annotations
+
+import csv
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from dpcn.pose import Pose
+from dpcn.training.module import DPCNModule, load_matcher
+
+REPO = Path(__file__).resolve().parents[1]
+
+# A DPCN small enough to train a few steps in seconds on a CPU.
+SMALL = [
+    "image_size=32",
+    "model.net.base_channels=2",
+    "model.net.depth=1",
+    "model.net.n_angles=32",
+    "model.net.n_radii=32",
+    "data.dataset.translation=4",
+    "data.epoch_size=8",
+    "data.batch_size=4",
+    "data.val_length=4",
+    "data.test_length=4",
+    "data.num_workers=0",
+    "trainer=cpu",
+    "trainer.max_epochs=1",
+    "trainer.enable_progress_bar=false",
+    "trainer.enable_model_summary=false",
+    "trainer.log_every_n_steps=1",
+]
+
+
+# The same without the DPCN architecture keys (for model=classical).
+SMALL_DATA = [a for a in SMALL if not a.startswith("model.")]
+
+
+def dpcn(*args: str, cwd: Path, check: bool = True) -> subprocess.CompletedProcess:
+    env = {k: v for k, v in os.environ.items() if k not in ("DPCN_DEBUG", "DPCN_COMMAND")}
+    out = subprocess.run([sys.executable, "-m", "dpcn", *args], capture_output=True, text=True, cwd=cwd, env=env)
+    if check and out.returncode != 0:
+        raise AssertionError(f"dpcn {' '.join(args)} failed ({out.returncode}):\n{out.stderr[-3000:]}")
+    return out
+
+
+def fit(run_dir: Path, *extra: str, cwd: Path) -> subprocess.CompletedProcess:
+    return dpcn("fit", *SMALL, f"hydra.run.dir={run_dir}", *extra, cwd=cwd)
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory) -> Path:
+    """One short training run; its directory."""
+    root = tmp_path_factory.mktemp("train")
+    fit(root / "run", cwd=root)
+    return root / "run"
+
+
+def test_fit_writes_a_run_directory(trained):
+    assert (trained / "checkpoints" / "last.ckpt").is_file()
+    assert (trained / ".hydra" / "config.yaml").is_file()
+    rows = list(csv.DictReader((trained / "metrics.csv").open()))
+    assert any(r.get("train/loss") for r in rows) and any(r.get("val/score") for r in rows)
+    assert not list((trained / "checkpoints").glob(".*tmp*"))  # no half-written files left
+
+
+def test_checkpoint_reloads_without_configs(trained):
+    ckpt = trained / "checkpoints" / "last.ckpt"
+    module = DPCNModule.load_from_checkpoint(ckpt, map_location="cpu")
+    pose = module.match(torch.rand(2, 1, 32, 32), torch.rand(2, 1, 32, 32))
+    assert isinstance(pose, Pose) and len(pose) == 2
+    matcher = load_matcher(ckpt)
+    assert not matcher.training
+    torch.testing.assert_close(
+        matcher.match(torch.ones(1, 1, 32, 32), torch.ones(1, 1, 32, 32)).as_tensor().isfinite(),
+        torch.ones(1, 4, dtype=torch.bool),
+    )
+
+
+def _crashing_run(run_dir: Path, crash_after_step: int, *extra: str) -> None:
+    """Train in this process with the real configs and trainer, crashing after a given step."""
+    import lightning as L
+    from hydra import compose, initialize_config_dir
+    from hydra.utils import instantiate
+
+    from dpcn import cli
+
+    class Crash(L.Callback):
+        def on_train_batch_end(self, trainer, *args):
+            if trainer.global_step == crash_after_step:
+                raise RuntimeError("simulated crash")
+
+    with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
+        cfg = compose("config", overrides=[*(o for o in SMALL if not o.startswith("trainer.enable")), *extra])
+    L.seed_everything(cfg.seed, workers=True)
+    module = instantiate(cfg.model, _convert_="all")
+    datamodule = instantiate(cfg.data)
+    trainer = cli._trainer(cfg, run_dir, fit=True)
+    trainer.callbacks.append(Crash())
+    with pytest.raises(RuntimeError, match="simulated crash"):
+        trainer.fit(module, datamodule=datamodule)
+
+
+def _weights(ckpt: Path) -> dict[str, torch.Tensor]:
+    return torch.load(ckpt, weights_only=False)["state_dict"]
+
+
+@pytest.mark.parametrize("crash_after_step", [2, 3], ids=["at-epoch-end", "mid-epoch"])
+def test_interrupted_run_resumes_exactly(tmp_path, crash_after_step):
+    """A crash leaves last.ckpt with the state at the crash; `fit ckpt_path=` from it
+    ends with the very weights of the run that was never interrupted: same data, same
+    teacher-forcing draws, same learning-rate schedule."""
+    epochs = ["trainer.max_epochs=2", "model.warmup_epochs=0", "model.teacher_forcing=0.5"]
+    fit(tmp_path / "straight", *epochs, cwd=tmp_path)
+    _crashing_run(tmp_path / "crashed", crash_after_step, *epochs)
+    saved = tmp_path / "crashed" / "checkpoints" / "last.ckpt"
+    assert torch.load(saved, weights_only=False)["global_step"] == crash_after_step
+    fit(tmp_path / "resumed", *epochs, f"ckpt_path={saved}", cwd=tmp_path)
+    straight = _weights(tmp_path / "straight/checkpoints/last.ckpt")
+    resumed = _weights(tmp_path / "resumed/checkpoints/last.ckpt")
+    assert torch.load(tmp_path / "resumed/checkpoints/last.ckpt", weights_only=False)["global_step"] == 4
+    for key, value in straight.items():
+        torch.testing.assert_close(resumed[key], value, rtol=1e-5, atol=1e-6, msg=key)
+    # ... and the interruption mattered: the crashed run's weights are not the final ones
+    crashed = _weights(saved)
+    assert any(not torch.allclose(crashed[k], v) for k, v in straight.items() if v.is_floating_point())
+
+
+def test_resume_with_more_epochs_stretches_the_schedule(tmp_path):
+    fit(tmp_path / "first", cwd=tmp_path)
+    fit(
+        tmp_path / "more", "trainer.max_epochs=3", f"ckpt_path={tmp_path / 'first/checkpoints/last.ckpt'}", cwd=tmp_path
+    )
+    assert torch.load(tmp_path / "more/checkpoints/last.ckpt", weights_only=False)["global_step"] == 6
+
+
+def test_validate_and_test_print_the_paper_table(trained, tmp_path):
+    ckpt = trained / "checkpoints" / "last.ckpt"
+    out = dpcn("test", *SMALL, f"ckpt_path={ckpt}", f"hydra.run.dir={tmp_path / 't'}", cwd=tmp_path)
+    assert "acc_x@5" in out.stdout and "acc_rot@0.5" in out.stdout
+    rows = list(csv.DictReader((tmp_path / "t" / "metrics_test.csv").open()))
+    assert rows[0]["n"] == "4.0" and 0.0 <= float(rows[0]["acc_scale@0.2"]) <= 100.0
+    out = dpcn("validate", *SMALL_DATA, "model=classical", f"hydra.run.dir={tmp_path / 'v'}", cwd=tmp_path)
+    assert "classical on sim_heterogeneous" in out.stdout
+    assert (tmp_path / "v" / "metrics_validate.csv").is_file()
+
+
+def test_predict_with_a_checkpoint(trained, tmp_path):
+    import cv2
+    import numpy as np
+
+    image = (np.random.default_rng(0).random((32, 32)) * 255).astype(np.uint8)
+    cv2.imwrite(str(tmp_path / "a.png"), image)
+    out = dpcn(
+        "predict", "template=a.png", "source=a.png", f"ckpt_path={trained / 'checkpoints/last.ckpt'}", cwd=tmp_path
+    )
+    assert set(eval(out.stdout)) == {"tx", "ty", "angle", "scale", "confidence"}  # noqa: S307 (JSON of floats)
+
+
+@pytest.mark.parametrize(
+    "args,message",
+    [
+        (["test", "ckpt_path=missing.ckpt"], "checkpoint not found: missing.ckpt"),
+        (["test", "ckpt_path=corrupt.ckpt"], "corrupt or not a torch file"),
+        (["test", "ckpt_path=foreign.ckpt"], "not a Lightning checkpoint of a dpcn model"),
+        (["test"], "needs ckpt_path=PATH"),
+        (["fit", "model=classical"], "nothing to train"),
+        (["fit", "model=classical", "model.net.depth=2"], "Could not override 'model.net.depth'"),
+        (["fit", "data.batch_size=0"], "batch_size"),
+        (["fit", "model.net.norm=layer"], "unknown norm 'layer'"),
+    ],
+)
+def test_bad_runs_fail_in_one_line(tmp_path, args, message):
+    (tmp_path / "corrupt.ckpt").write_bytes(b"\x00\x01 not a checkpoint")
+    torch.save({"weights": torch.zeros(3)}, tmp_path / "foreign.ckpt")
+    small = SMALL_DATA if "model=classical" in args else SMALL
+    out = dpcn(*args[:1], *small, *args[1:], f"hydra.run.dir={tmp_path / 'r'}", cwd=tmp_path, check=False)
+    assert out.returncode == 2, out.stderr[-2000:]
+    lines = [line for line in out.stderr.splitlines() if line.startswith("dpcn ")]
+    assert len(lines) == 1 and message in lines[0], out.stderr[-2000:]
+    assert "Traceback" not in out.stderr
+
+
+def test_checkpoint_for_another_image_size(trained, tmp_path):
+    ckpt = trained / "checkpoints" / "last.ckpt"
+    args = [a for a in SMALL if not a.startswith("image_size")]
+    out = dpcn(
+        "test", *args, "image_size=48", f"ckpt_path={ckpt}", f"hydra.run.dir={tmp_path}", cwd=tmp_path, check=False
+    )
+    assert out.returncode == 2 and "built for 32x32 images, got 48x48" in out.stderr
+
+
+def test_unknown_config_group_or_key(tmp_path):
+    out = dpcn("fit", "data=nope", cwd=tmp_path, check=False)
+    assert out.returncode != 0 and "nope" in out.stderr and "Traceback" not in out.stderr
+    out = dpcn("fit", "model.tempreature=1", cwd=tmp_path, check=False)
+    assert out.returncode != 0 and "tempreature" in out.stderr and "Traceback" not in out.stderr
+
+
+def test_multirun_sweep(tmp_path):
+    dpcn("fit", *SMALL, "-m", "model.temperature=0.01,0.05", "loss=l1,kl", f"hydra.sweep.dir={tmp_path}", cwd=tmp_path)
+    runs = sorted(p for p in tmp_path.iterdir() if p.is_dir() and (p / "checkpoints" / "last.ckpt").is_file())
+    assert len(runs) == 4
+    temperatures = set()
+    for run in runs:
+        hp = torch.load(run / "checkpoints" / "last.ckpt", weights_only=False)["hyper_parameters"]
+        temperatures.add(hp["temperature"])
+    assert temperatures == {0.01, 0.05}
+
+
+def test_ddp_with_two_cpu_processes(tmp_path):
+    fit(tmp_path / "ddp", "trainer=ddp", "trainer.accelerator=cpu", "trainer.devices=2", cwd=tmp_path)
+    ckpt = torch.load(tmp_path / "ddp/checkpoints/last.ckpt", weights_only=False)
+    # 8 pairs per epoch, batch 4, split over 2 ranks: one optimiser step per rank
+    assert ckpt["global_step"] == 1
