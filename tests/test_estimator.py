@@ -98,6 +98,23 @@ def test_dtype_and_device_follow_input():
     assert pose.tx.dtype == torch.float64 and pose.tx.device == template.device
 
 
+@pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16, "autocast"])
+def test_low_precision_inputs_are_correlated_in_float32(dtype):
+    """DFTs have no bfloat16 kernels: half inputs and autocast regions still give the float32 pose."""
+    template = photo("camera")
+    truth = (10.0, -5.0, 30.0, 1.1)
+    t = torch.from_numpy(template)[None, None]
+    s = torch.from_numpy(cv2_warp(template, *truth))[None, None]
+    reference = PhaseCorrelationEstimator()(t, s).as_tensor()
+    if dtype == "autocast":
+        with torch.autocast("cpu", torch.bfloat16):
+            pose = PhaseCorrelationEstimator()(t, s)
+    else:
+        pose = PhaseCorrelationEstimator()(t.to(dtype), s.to(dtype))
+    assert pose.tx.dtype == torch.float32
+    torch.testing.assert_close(pose.as_tensor(), reference, atol=0.05, rtol=0.0)
+
+
 def test_unrelated_images_have_low_confidence():
     template = photo("camera")
     match = recover(template, cv2_warp(template, 5.0, 5.0, 40.0, 1.0))

@@ -18,7 +18,7 @@ import kornia
 import torch
 from torch import Tensor, nn
 
-from .ops._checks import check_pair
+from .ops._checks import check_pair, full_precision
 from .ops.correlation import correlation_surface, cross_power_spectrum
 from .ops.logpolar import log_polar, log_polar_grid, log_radius_step
 from .ops.soft_argmax import soft_argmax2d
@@ -80,6 +80,7 @@ def _scale_mask(n_radii: int, step: float, scale_range: tuple[float, float] | No
     return torch.where(ok, 0.0, -1.0e4).to(dtype)[None, None, :]
 
 
+@full_precision
 def estimate_rotation_scale(
     template: Tensor,
     source: Tensor,
@@ -129,6 +130,7 @@ def estimate_rotation_scale(
     return RotationScale(angle, scale, confidence, surface, lp_t, lp_s)
 
 
+@full_precision
 def unwarp_rotation_scale(source: Tensor, angle: Tensor, scale: Tensor) -> Tensor:
     """Undo a rotation by ``angle`` degrees and a scaling by ``scale`` about the image centre.
 
@@ -145,6 +147,7 @@ def unwarp_rotation_scale(source: Tensor, angle: Tensor, scale: Tensor) -> Tenso
     )
 
 
+@full_precision
 def estimate_translation(
     template: Tensor,
     unwarped_source: Tensor,

@@ -2,8 +2,15 @@
 
 from __future__ import annotations
 
+import functools
+from collections.abc import Callable
+from typing import ParamSpec, TypeVar
+
 import torch
 from torch import Tensor
+
+P = ParamSpec("P")
+R = TypeVar("R")
 
 
 def check_image(image: object, name: str = "image", min_size: int = 2) -> Tensor:
@@ -42,3 +49,26 @@ def check_pair(a: Tensor, b: Tensor, names: tuple[str, str] = ("template", "sour
         raise ValueError(
             f"{names[0]} and {names[1]} must share dtype and device, got {a.dtype}/{a.device} and {b.dtype}/{b.device}"
         )
+
+
+_LOW_PRECISION = (torch.float16, torch.bfloat16)
+
+
+def full_precision(fn: Callable[P, R]) -> Callable[P, R]:
+    """Run ``fn`` in float32 when given float16/bfloat16 tensors, and outside autocast.
+
+    DFTs have no bfloat16 kernels (and lose the sub-pixel peak in float16), so under mixed
+    precision the U-Nets run in low precision and the phase correlation in float32.
+    """
+
+    def promote(value: object) -> object:
+        return value.float() if isinstance(value, Tensor) and value.dtype in _LOW_PRECISION else value
+
+    @functools.wraps(fn)
+    def wrapper(*args: P.args, **kwargs: P.kwargs) -> R:
+        tensor = next((a for a in (*args, *kwargs.values()) if isinstance(a, Tensor)), None)
+        device_type = tensor.device.type if tensor is not None else "cpu"
+        with torch.autocast(device_type, enabled=False):
+            return fn(*(promote(a) for a in args), **{k: promote(v) for k, v in kwargs.items()})
+
+    return wrapper

@@ -7,7 +7,7 @@ import math
 import torch
 from torch import Tensor, nn
 
-from ._checks import check_pair
+from ._checks import check_pair, full_precision
 
 __all__ = ["cross_power_spectrum", "correlation_surface", "phase_correlation", "PhaseCorrelation"]
 
@@ -19,6 +19,7 @@ def _gaussian_transfer(height: int, width: int, sigma: float, device: torch.devi
     return torch.exp(-2.0 * math.pi**2 * sigma**2 * (fy[:, None] ** 2 + fx[None, :] ** 2))
 
 
+@full_precision
 def cross_power_spectrum(a: Tensor, b: Tensor) -> Tensor:
     """Channel-pooled cross-power spectrum ``sum_c B_c conj(A_c)`` in rfft2 layout.
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from ._checks import check_image
+from ._checks import check_image, full_precision
 
 __all__ = [
     "apodization_window",
@@ -66,6 +66,7 @@ def highpass_filter(
     return (1.0 - x) * (2.0 - x)
 
 
+@full_precision
 def magnitude_spectrum(
     image: Tensor, window: bool = True, highpass: bool = False, log: bool = False, half: bool = False
 ) -> Tensor:

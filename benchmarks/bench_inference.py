@@ -1,0 +1,87 @@
+"""Inference speed of DPCN (tiny and paper presets) and of the classical estimator.
+
+256x256 single-channel pairs, end to end (all four U-Nets, both phases, the half-turn check),
+no ground truth. Reports the latency of one pair (batch 1) and the throughput of batches, as
+the median of several timed rounds after a warm-up. Weights are random unless --ckpt is given:
+the cost does not depend on them.
+
+    python benchmarks/bench_inference.py [--device cpu|cuda] [--threads 2] [--batch 32] [--ckpt last.ckpt]
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+
+import torch
+
+from dpcn import PhaseCorrelationEstimator
+from dpcn.models import DPCN
+
+PRESETS = {  # the U-Net sizes of conf/model/{tiny,paper}.yaml
+    "tiny": dict(base_channels=4, depth=3),
+    "paper": dict(base_channels=32, depth=4),
+}
+
+
+def timed(fn, device: str, rounds: int) -> float:
+    """Median seconds of ``fn()`` over ``rounds`` runs after two warm-up runs."""
+    for _ in range(2):
+        fn()
+    times = []
+    for _ in range(rounds):
+        if device.startswith("cuda"):
+            torch.cuda.synchronize()
+        start = time.perf_counter()
+        fn()
+        if device.startswith("cuda"):
+            torch.cuda.synchronize()
+        times.append(time.perf_counter() - start)
+    return statistics.median(times)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--batch", type=int, default=32)
+    parser.add_argument("--size", type=int, default=256)
+    parser.add_argument("--rounds", type=int, default=10)
+    parser.add_argument("--presets", default="tiny,paper")
+    parser.add_argument("--ckpt", default=None, help="time this checkpoint instead of randomly initialised presets")
+    parser.add_argument("--bf16", action="store_true", help="autocast the U-Nets to bfloat16 (GPU)")
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    device = args.device
+    name = torch.cuda.get_device_name() if device.startswith("cuda") else f"CPU, {args.threads} threads"
+    print(f"{args.size}x{args.size} pairs, device {device} ({name}), torch {torch.__version__}")
+
+    models: dict[str, torch.nn.Module] = {}
+    if args.ckpt:
+        from dpcn.training import load_matcher
+
+        models[f"DPCN {args.ckpt}"] = load_matcher(args.ckpt).model
+    else:
+        for preset in args.presets.split(","):
+            models[f"DPCN {preset}"] = DPCN(image_size=(args.size, args.size), **PRESETS[preset])
+    models["classical (no U-Nets)"] = PhaseCorrelationEstimator()
+
+    generator = torch.Generator().manual_seed(0)
+    pairs = torch.rand(2, args.batch, 1, args.size, args.size, generator=generator).to(device)
+    print(f"{'model':28s} {'params':>9s} {'1 pair (ms)':>12s} {f'batch {args.batch} (ms/pair)':>20s} {'pairs/s':>9s}")
+    for label, model in models.items():
+        model = model.to(device).eval()
+        params = sum(p.numel() for p in model.parameters())
+
+        def run(n: int, model=model) -> None:
+            with torch.inference_mode(), torch.autocast(device.split(":")[0], torch.bfloat16, enabled=args.bf16):
+                model(pairs[0, :n], pairs[1, :n])
+
+        one = timed(lambda: run(1), device, args.rounds)
+        many = timed(lambda: run(args.batch), device, max(3, args.rounds // 3)) / args.batch
+        print(f"{label:28s} {params:9d} {1000 * one:12.1f} {1000 * many:20.2f} {1 / many:9.0f}")
+
+
+if __name__ == "__main__":
+    main()
