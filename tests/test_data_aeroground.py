@@ -136,7 +136,7 @@ def test_modalities_differ_but_are_coregistered(scene):
 
 
 def test_make_dataset_layout_and_default_reading(tmp_path):
-    root = make_dataset(tmp_path / "ds", n_scenes=1, seed=3, size=(1024, 1024))
+    root = make_dataset(tmp_path / "ds", n_scenes=1, seed=3)
     assert (root / "README.txt").is_file()
     assert "regions.json" in (root / "README.txt").read_text()
     folder = root / "scene_a"
@@ -153,8 +153,8 @@ def test_make_dataset_layout_and_default_reading(tmp_path):
     regions = json.loads((folder / "regions.json").read_text())
     assert {"train", "val"} <= set(regions)
     (x0, _, x1, _), (v0, _, v1, _) = regions["train"][0], regions["val"][0]
-    assert x0 == 0 and x1 == v0 and v1 == 1024
-    assert cv2.imread(str(folder / "drone.png")).shape == (1024, 1024, 3)
+    assert x0 == 0 and v0 - x1 == 630 and v1 == 2560  # the gap keeps train and val crops apart
+    assert cv2.imread(str(folder / "drone.png")).shape == (1280, 2560, 3)
     # Default settings work on both splits of the default-size stand-in, for every pair.
     for split in ("train", "val"):
         for pair in PAIRS:
@@ -175,7 +175,9 @@ def test_write_scene_round_trip_and_names(tmp_path):
     rgb = cv2.cvtColor(cv2.imread(str(folder / "drone.png")), cv2.COLOR_BGR2RGB)
     np.testing.assert_array_equal(rgb, small["drone"])
     assert json.loads((folder / "regions.json").read_text()) == {"train": [[0, 0, 64, 96]]}
-    root = make_dataset(tmp_path / "three", n_scenes=3, size=(96, 128))
+    root = make_dataset(tmp_path / "three", n_scenes=3, size=(96, 128), gap=0)
+    with pytest.raises(ValueError, match="split gap"):
+        make_dataset(tmp_path / "narrow", size=(96, 128))
     assert sorted(p.name for p in root.iterdir() if p.is_dir()) == [
         "scene_a",
         "scene_b",

@@ -28,7 +28,7 @@ def compose_data(*overrides: str):
 
 @pytest.fixture(scope="module")
 def maps_root(tmp_path_factory) -> Path:
-    return make_dataset(tmp_path_factory.mktemp("maps"), n_scenes=3, seed=3, size=(720, 720))
+    return make_dataset(tmp_path_factory.mktemp("maps"), n_scenes=3, seed=3, size=(720, 720), gap=0)
 
 
 @pytest.mark.parametrize("pair", ["l2d", "l2sat", "s2d", "s2sat"])
@@ -108,7 +108,7 @@ def test_csv_config(tmp_path):
 
 
 def test_make_data_cli(tmp_path):
-    out = dpcn("make-data", f"out={tmp_path / 'maps'}", "n_scenes=1", "scene_size=640", cwd=tmp_path)
+    out = dpcn("make-data", f"out={tmp_path / 'maps'}", "n_scenes=1", "scene_size=640", "split_gap=0", cwd=tmp_path)
     assert "wrote 1 scenes (scene_a)" in out.stdout
     files = sorted(p.name for p in (tmp_path / "maps" / "scene_a").iterdir())
     assert files == [
@@ -122,3 +122,5 @@ def test_make_data_cli(tmp_path):
     ]
     again = dpcn("make-data", f"out={tmp_path / 'maps'}", cwd=tmp_path, check=False)
     assert again.returncode == 2 and "not empty" in again.stderr
+    narrow = dpcn("make-data", f"out={tmp_path / 'narrow'}", "scene_size=640", cwd=tmp_path, check=False)
+    assert narrow.returncode == 2 and "split gap (630 px)" in narrow.stderr and "Traceback" not in narrow.stderr

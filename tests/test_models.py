@@ -18,8 +18,9 @@ def small_dpcn(**kw):
 
 @pytest.mark.parametrize("size", [(32, 32), (37, 50)])
 @pytest.mark.parametrize("norm", ["group", "batch", "none"])
-def test_unet_shape_and_positive(size, norm):
-    net = UNet(3, 2, base_channels=4, depth=3, norm=norm)
+@pytest.mark.parametrize("upsample", ["bilinear", "nearest"])
+def test_unet_shape_and_positive(size, norm, upsample):
+    net = UNet(3, 2, base_channels=4, depth=3, norm=norm, upsample=upsample)
     out = net(torch.randn(2, 3, *size))
     assert out.shape == (2, 2, *size)
     assert (out > 0).all()
@@ -30,6 +31,8 @@ def test_unet_rejects_bad_sizes():
         UNet(1, 1, base_channels=0)
     with pytest.raises(ValueError, match="unknown norm"):
         UNet(norm="layer")
+    with pytest.raises(ValueError, match="unknown upsample"):
+        UNet(upsample="cubic")
 
 
 def test_half_turn_is_a_180_degree_rotation_about_the_pose_centre():

@@ -31,7 +31,7 @@ commands: {", ".join(COMMANDS)}
       prints the paper's metrics table and writes metrics_<stage>.csv in the run directory
   predict template=A.png source=B.png [ckpt_path=model.ckpt]
       prints {{"tx", "ty", "angle", "scale", "confidence"}} as JSON
-  make-data out=DIR [n_scenes=3] [scene_size=1024] [seed=42]
+  make-data out=DIR [n_scenes=3] [scene_size=[1280,2560]] [split_gap=630] [seed=0]
       writes procedural scenes (lidar, stereo, drone, satellite + masks + regions.json) in
       the layout that data=l2d|l2sat|s2d|s2sat data.root=DIR reads
   -m key=a,b ...   a Hydra multirun sweep (runs under multirun/<time>/<n>/)
@@ -214,10 +214,11 @@ def run_make_data(cfg: DictConfig) -> None:
     out = Path(cfg.out)
     if out.exists() and any(out.iterdir()):
         raise CliError(f"{out} exists and is not empty; choose a new folder")
-    size = int(cfg.scene_size)
-    root = make_dataset(out, n_scenes=int(cfg.n_scenes), seed=int(cfg.seed), size=(size, size))
+    size = cfg.scene_size
+    h, w = (int(size), int(size)) if isinstance(size, (int, float)) else (int(size[0]), int(size[1]))
+    root = make_dataset(out, n_scenes=int(cfg.n_scenes), seed=int(cfg.seed), size=(h, w), gap=int(cfg.split_gap))
     scenes = sorted(p.name for p in root.iterdir() if p.is_dir())
-    print(f"wrote {len(scenes)} scenes ({', '.join(scenes)}) of {size}x{size} px to {root}")
+    print(f"wrote {len(scenes)} scenes ({', '.join(scenes)}) of {h}x{w} px (H x W) to {root}")
 
 
 def run_validate(cfg: DictConfig) -> None:

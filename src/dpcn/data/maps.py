@@ -16,12 +16,13 @@ __all__ = ["BUILTIN_VERSION", "builtin_root", "map_pairs", "csv_pairs"]
 
 log = logging.getLogger("dpcn")
 
-BUILTIN_VERSION = "v1"
+BUILTIN_VERSION = "v2"
 _announced = False
 
 
 def builtin_root(cache_dir: str | Path | None = None) -> Path:
-    """The built-in procedural scenes (three 1024x1024 scenes, generated once and cached).
+    """The built-in procedural scenes (three 1280x2560 scenes with disjoint train and val
+    areas, :func:`dpcn.data.scene.make_dataset`'s defaults), generated once and cached.
 
     The cache is ``$DPCN_CACHE`` or ``~/.cache/dpcn``; generation takes a few seconds and is
     written to a temporary folder first, so concurrent or interrupted runs never see half a

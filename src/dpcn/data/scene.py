@@ -719,36 +719,49 @@ Layout (read by dpcn.data.aeroground.MapPairs):
   <scene>/drone.png, satellite.png    aerial maps (RGB), same size, co-registered
   <scene>/lidar_mask.png, stereo_mask.png   255 = observed by the robot, 0 = no data
   <scene>/regions.json  {{"train": [[x0, y0, x1, y1], ...], "val": [...], "test": [...]}}
-      pixel rectangles from which crop centres are drawn; here train = left
-      {train_pct} % of each scene, val = test = the rest (no separate test area).
+      pixel rectangles from which crop centres are drawn; here train = x < {split},
+      val = test = x >= {split} + {gap} (a gap of {gap} px keeps crops of the two apart).
 Scenes: {scenes}. Size (H, W): {size}.
 """
+
+
+# Crop centres of the two splits this far apart never share a pixel: with 256 px crops,
+# +-50 px, any rotation and scales >= 0.8, a pair reaches (hypot(128, 128) + 50 sqrt(2)) / 0.8
+# = 315 px from its crop centre.
+SPLIT_GAP = 630
 
 
 def make_dataset(
     out: str | Path,
     n_scenes: int = 3,
     seed: int = 0,
-    size: tuple[int, int] = (1024, 1024),
+    size: tuple[int, int] = (1280, 2560),
     train_fraction: float = 0.6,
+    gap: int = SPLIT_GAP,
 ) -> Path:
     """Generate ``n_scenes`` scenes (``scene_a``, ``scene_b``, ...) under ``out``.
 
-    Each scene gets ``regions.json`` with ``train`` = the left ``train_fraction`` of the
-    raster and ``val`` = ``test`` = the rest. Regions bound crop *centres*; with 1024 px
-    scenes, 256 px crops and the default pose ranges, centres must keep ~315 px from the
-    raster border, so the default split is at 60 % (leaving val a usable strip); crops of
-    the two splits overlap near the split line. Also writes ``README.txt``. Returns ``out``.
+    Each scene gets ``regions.json`` (regions bound crop *centres*): ``train`` = the left
+    ``train_fraction`` of the width minus ``gap``, ``val`` = ``test`` = the rest right of
+    the gap. With the default gap (:data:`SPLIT_GAP`) training and validation crops of the
+    default pose ranges never overlap: validation measures a held-out area, as in the paper.
+    Crop centres also keep ~315 px from the raster border, so each split needs room.
+    Also writes ``README.txt``. Returns ``out``.
     """
     if n_scenes < 1:
         raise ValueError(f"n_scenes must be >= 1, got {n_scenes}")
     if not 0.0 < train_fraction < 1.0:
         raise ValueError(f"train_fraction must be in (0, 1), got {train_fraction}")
+    h, w = int(size[0]), int(size[1])
+    if gap < 0 or (gap > 0 and w < 2 * gap):
+        raise ValueError(
+            f"the split gap ({gap} px) must be >= 0 and at most half the scene width ({w} px): "
+            "use a wider scene or a smaller gap (0: adjacent train and val areas)"
+        )
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    h, w = int(size[0]), int(size[1])
-    split = int(round(train_fraction * w))
-    regions = {"train": [[0, 0, split, h]], "val": [[split, 0, w, h]], "test": [[split, 0, w, h]]}
+    split = max(1, int(round(train_fraction * (w - gap))))
+    regions = {"train": [[0, 0, split, h]], "val": [[split + gap, 0, w, h]], "test": [[split + gap, 0, w, h]]}
     names = []
     for i in range(n_scenes):
         scene_seed = int(np.random.SeedSequence([int(seed) & 0xFFFFFFFF, i]).generate_state(1)[0])
@@ -756,11 +769,6 @@ def make_dataset(
         write_scene(out, name, generate_scene(scene_seed, (h, w)), regions)
         names.append(name)
     (out / "README.txt").write_text(
-        _README.format(
-            seed=seed,
-            train_pct=int(round(100 * train_fraction)),
-            scenes=", ".join(names),
-            size=(h, w),
-        )
+        _README.format(seed=seed, split=split, gap=gap, scenes=", ".join(names), size=(h, w))
     )
     return out

@@ -59,7 +59,8 @@ class DPCN(nn.Module):
         feature_channels: channels of each U-Net's output (pooled by the correlation).
         base_channels, depth: U-Net width and number of down-sampling levels (see
             :class:`~dpcn.models.unet.UNet`); presets: ``tiny`` (4, 3), ``paper`` (32, 4).
-        norm, input_skip: U-Net normalisation and input skip (see :class:`~dpcn.models.unet.UNet`).
+        norm, input_skip, upsample: U-Net normalisation, input skip and decoder upsampling
+            (see :class:`~dpcn.models.unet.UNet`).
         image_size: ``(H, W)`` the model is built for; other sizes raise a clear error
             (``None`` accepts any size).
         n_angles, n_radii, min_radius, max_radius, highpass: phase-1 log-polar settings.
@@ -80,6 +81,7 @@ class DPCN(nn.Module):
         depth: int = 3,
         norm: str = "group",
         input_skip: bool = False,
+        upsample: str = "bilinear",
         image_size: tuple[int, int] | list[int] | None = (256, 256),
         n_angles: int = 256,
         n_radii: int = 256,
@@ -99,7 +101,7 @@ class DPCN(nn.Module):
         log_polar_grid(8, 8, n_angles, n_radii, min_radius, max_radius)  # validates the grid
 
         def unet() -> UNet:
-            return UNet(in_channels, feature_channels, base_channels, depth, norm, input_skip)
+            return UNet(in_channels, feature_channels, base_channels, depth, norm, input_skip, upsample)
 
         self.rs_template, self.rs_source = unet(), unet()
         self.t_template, self.t_source = unet(), unet()

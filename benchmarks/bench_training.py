@@ -1,0 +1,98 @@
+"""Train DPCN with the real command line, then evaluate it and the classical estimator on the same pairs.
+
+Runs ``python -m dpcn fit`` (timed), then ``python -m dpcn validate|test`` of the best checkpoint
+(selected on the validation set) and of ``model=classical`` on every evaluation set, and prints
+the paper's table (Table 1 for the simulated sets, Table 2/3 for the map pairs): MSE and
+accuracy within the paper's thresholds, the strict accuracies, and the time per pair.
+
+    # Table 1 (simulation): train on heterogeneous pairs, test on heterogeneous and dynamic ones
+    python benchmarks/bench_training.py --data sim_heterogeneous --evaluate sim_heterogeneous,sim_dynamic
+    # Table 2/3 (maps): l2sat on the built-in scenes; held-out region (validate) and held-out scene (test)
+    python benchmarks/bench_training.py --data l2sat --stages validate,test -- trainer.max_epochs=6
+
+Everything after ``--`` is passed to ``fit`` as Hydra overrides. Outputs go to ``--out``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import os
+import subprocess
+import sys
+import time
+from datetime import datetime
+from pathlib import Path
+
+COLUMNS = [  # (metrics key, table header); {t} is the data set's translation threshold
+    ("mse_x", "E_x"), ("acc_x@{t}", "Acc_x@{t}"), ("mse_y", "E_y"), ("acc_y@{t}", "Acc_y@{t}"),
+    ("mse_rot", "E_rot"), ("acc_rot@1", "Acc_rot@1"), ("mse_scale", "E_scale"), ("acc_scale@0.2", "Acc_s@0.2"),
+    ("acc_x@1", "x@1px"), ("acc_y@1", "y@1px"), ("acc_rot@0.5", "rot@0.5"), ("acc_scale@0.02", "s@0.02"),
+]  # fmt: skip
+
+
+def dpcn(*args: str, log: Path) -> float:
+    """Run ``python -m dpcn ARGS``; stream its output to ``log``; return the wall time (s)."""
+    env = {k: v for k, v in os.environ.items() if k not in ("DPCN_COMMAND",)}
+    start = time.perf_counter()
+    with log.open("w") as out:
+        done = subprocess.run([sys.executable, "-m", "dpcn", *args], stdout=out, stderr=subprocess.STDOUT, env=env)
+    if done.returncode != 0:
+        sys.exit(f"python -m dpcn {' '.join(args)} failed ({done.returncode}); see {log}")
+    return time.perf_counter() - start
+
+
+def read_metrics(path: Path) -> dict[str, float]:
+    with path.open() as f:
+        row = next(csv.DictReader(f))
+    return {k: float(v) for k, v in row.items() if k != "name"}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--data", default="sim_heterogeneous", help="training data config")
+    parser.add_argument("--evaluate", default=None, help="comma-separated data configs to evaluate (default: --data)")
+    parser.add_argument("--stages", default="test", help="validate (held-out region/val set), test, or both")
+    parser.add_argument("--ckpt", default="best", choices=["best", "last"])
+    parser.add_argument("--out", default=None, help="output folder (default: outputs/bench/<data>-<time>)")
+    parser.add_argument("overrides", nargs="*", help="Hydra overrides for fit (after --)")
+    args = parser.parse_args()
+    out = Path(args.out or f"outputs/bench/{args.data}-{datetime.now():%Y-%m-%d_%H-%M-%S}").resolve()
+    out.mkdir(parents=True, exist_ok=True)
+
+    fit_dir = out / "fit"
+    fit_seconds = dpcn("fit", f"data={args.data}", *args.overrides, f"hydra.run.dir={fit_dir}", log=out / "fit.log")
+    ckpts = fit_dir / "checkpoints"
+    best = sorted(ckpts.glob("best-*.ckpt"))
+    ckpt = best[-1] if args.ckpt == "best" and best else ckpts / "last.ckpt"
+    print(f"fit data={args.data} {' '.join(args.overrides)}: {fit_seconds / 60:.1f} min; evaluating {ckpt.name}")
+
+    # Evaluation keeps the training run's image size and channels (the model is built for them).
+    shared = [o for o in args.overrides if o.split("=")[0] in ("image_size", "channels", "seed")]
+    rows = []
+    for data in (args.evaluate or args.data).split(","):
+        for stage in args.stages.split(","):
+            for label, model in (("DPCN", [f"ckpt_path={ckpt}"]), ("classical", ["model=classical"])):
+                run = out / f"{stage}-{data}-{label}"
+                seconds = dpcn(
+                    stage, f"data={data}", *model, *shared, f"hydra.run.dir={run}", log=run.with_suffix(".log")
+                )
+                metrics = read_metrics(run / f"metrics_{stage}.csv")
+                rows.append((f"{label} {data} ({'val' if stage == 'validate' else 'test'})", metrics, seconds))
+
+    threshold = next(k.split("@")[1] for k in rows[0][1] if k.startswith("acc_x@") and k != "acc_x@1")
+    header = [h.format(t=threshold) for _, h in COLUMNS]
+    width = max(len(name) for name, _, _ in rows)
+    print(f"{'':{width}s} " + " ".join(f"{h:>10s}" for h in header) + f" {'pairs':>6s} {'s total':>8s}")
+    for name, metrics, seconds in rows:
+        cells = []
+        for key, _ in COLUMNS:
+            value = metrics[key.format(t=threshold)]
+            cells.append(f"{value:10.1f}" if key.startswith("acc") else f"{value:10.4g}")
+        print(f"{name:{width}s} " + " ".join(cells) + f" {int(metrics['n']):6d} {seconds:8.1f}")
+    print(f"(Acc in %, E = MSE; x, y in px, rot in degrees; thresholds {threshold} px, 1 deg, 0.2 and strict 1 px, "
+          f"0.5 deg, 0.02; outputs in {out})")  # fmt: skip
+
+
+if __name__ == "__main__":
+    main()
