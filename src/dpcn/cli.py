@@ -12,6 +12,7 @@ from __future__ import annotations
 import logging
 import os
 import sys
+import warnings
 from pathlib import Path
 
 import hydra
@@ -109,6 +110,9 @@ def _trainer(cfg: DictConfig, run_dir: Path, fit: bool):
 
     from .training.checkpointing import AtomicCheckpointIO
 
+    # metrics.csv goes straight into the run directory, beside Hydra's files (hence the filter:
+    # the logger would warn that the directory is not empty).
+    warnings.filterwarnings("ignore", message="Experiment logs directory .* exists and is not empty")
     loggers = [CSVLogger(save_dir=str(run_dir), name="", version="")]
     if importlib.util.find_spec("tensorboard") is not None:
         loggers.append(TensorBoardLogger(save_dir=str(run_dir), name="", version="tb"))
