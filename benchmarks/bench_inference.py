@@ -13,16 +13,22 @@ from __future__ import annotations
 import argparse
 import statistics
 import time
+from pathlib import Path
 
 import torch
+from omegaconf import OmegaConf
 
 from dpcn import PhaseCorrelationEstimator
 from dpcn.models import DPCN
 
-PRESETS = {  # the U-Net sizes of conf/model/{tiny,paper}.yaml
-    "tiny": dict(base_channels=4, depth=3),
-    "paper": dict(base_channels=32, depth=4),
-}
+CONF = Path(__file__).resolve().parents[1] / "conf" / "model"
+ARCHITECTURE = ("feature_channels", "base_channels", "depth", "norm", "input_skip", "upsample", "n_angles", "n_radii")
+
+
+def preset(name: str) -> dict:
+    """The architecture of ``conf/model/<name>.yaml`` (so the benchmark times what ``fit`` trains)."""
+    net = OmegaConf.load(CONF / f"{name}.yaml").net
+    return {key: net[key] for key in ARCHITECTURE if key in net}
 
 
 def timed(fn, device: str, rounds: int) -> float:
@@ -63,8 +69,8 @@ def main() -> None:
 
         models[f"DPCN {args.ckpt}"] = load_matcher(args.ckpt).model
     else:
-        for preset in args.presets.split(","):
-            models[f"DPCN {preset}"] = DPCN(image_size=(args.size, args.size), **PRESETS[preset])
+        for name in args.presets.split(","):
+            models[f"DPCN {name}"] = DPCN(image_size=(args.size, args.size), **preset(name))
     models["classical (no U-Nets)"] = PhaseCorrelationEstimator()
 
     generator = torch.Generator().manual_seed(0)

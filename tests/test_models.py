@@ -26,6 +26,28 @@ def test_unet_shape_and_positive(size, norm, upsample):
     assert (out > 0).all()
 
 
+@pytest.mark.parametrize("channels", [4, 8, 32])
+def test_unet_group_norm_matches_torch_in_channels_last(channels):
+    from dpcn.models.unet import _GroupNorm
+
+    ours, reference = _GroupNorm(4, channels), torch.nn.GroupNorm(4, channels)
+    with torch.no_grad():
+        for module in (ours, reference):
+            module.weight.copy_(torch.linspace(0.5, 2.0, channels))
+            module.bias.copy_(torch.linspace(-1.0, 1.0, channels))
+    x = torch.randn(2, channels, 9, 11, dtype=torch.float64).contiguous(memory_format=torch.channels_last)
+    ours, reference = ours.double(), reference.double()
+    a, b = x.clone().requires_grad_(), x.clone().requires_grad_()
+    out = ours(a)
+    assert out.is_contiguous(memory_format=torch.channels_last)
+    torch.testing.assert_close(out, reference(b))
+    grad = torch.randn_like(out)
+    out.backward(grad)
+    reference(b).backward(grad)
+    torch.testing.assert_close(a.grad, b.grad)
+    assert ours.state_dict().keys() == reference.state_dict().keys()
+
+
 def test_unet_rejects_bad_sizes():
     with pytest.raises(ValueError, match="invalid U-Net size"):
         UNet(1, 1, base_channels=0)
