@@ -57,8 +57,7 @@ class UNet(nn.Module):
         depth: number of down-sampling (and up-sampling) levels; the paper uses 4.
             ``H`` and ``W`` need not be multiples of ``2 ** depth`` (skips are resized).
         norm: ``group`` (a pair gives the same features alone or in any batch, and DDP needs no
-            synchronisation), ``batch`` or ``none`` (no normalisation: about twice as fast on
-            CPUs, where GroupNorm's kernels are slow in the channels-last layout).
+            synchronisation), ``batch`` or ``none`` (no normalisation, cheapest).
         upsample: decoder upsampling, ``bilinear`` or ``nearest`` (cheaper backward pass).
 
     Outputs go through softplus: the paper keeps features positive so that the correlation
@@ -114,10 +113,8 @@ class UNet(nn.Module):
         y = skips.pop()
         for block in self.up:
             skip = skips.pop()
-            if self.upsample == "nearest":
-                y = F.interpolate(y, size=skip.shape[-2:], mode="nearest")
-            else:
-                y = F.interpolate(y, size=skip.shape[-2:], mode="bilinear", align_corners=False)
+            corners = False if self.upsample == "bilinear" else None
+            y = F.interpolate(y, size=skip.shape[-2:], mode=self.upsample, align_corners=corners)
             y = block(torch.cat([y, skip], dim=1))
         out = self.head(y) if self.skip is None else self.head(y) + self.skip(x)
         return F.softplus(out).contiguous()
