@@ -124,3 +124,6 @@ def test_make_data_cli(tmp_path):
     assert again.returncode == 2 and "not empty" in again.stderr
     narrow = dpcn("make-data", f"out={tmp_path / 'narrow'}", "scene_size=640", cwd=tmp_path, check=False)
     assert narrow.returncode == 2 and "split gap (630 px)" in narrow.stderr and "Traceback" not in narrow.stderr
+    bad = dpcn("make-data", f"out={tmp_path / 'bad'}", "scene_size=[100]", cwd=tmp_path, check=False)
+    assert bad.returncode == 2 and "scene_size must be one positive integer or [H, W]" in bad.stderr
+    assert "Traceback" not in bad.stderr and "HYDRA_FULL_ERROR" not in bad.stderr

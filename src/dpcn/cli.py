@@ -219,7 +219,10 @@ def run_make_data(cfg: DictConfig) -> None:
     if out.exists() and any(out.iterdir()):
         raise CliError(f"{out} exists and is not empty; choose a new folder")
     size = cfg.scene_size
-    h, w = (int(size), int(size)) if isinstance(size, (int, float)) else (int(size[0]), int(size[1]))
+    size = [size, size] if isinstance(size, (int, float)) else list(size)
+    if len(size) != 2 or not all(isinstance(v, int) and v > 0 for v in size):
+        raise CliError(f"scene_size must be one positive integer or [H, W], got {cfg.scene_size}")
+    h, w = size
     root = make_dataset(out, n_scenes=int(cfg.n_scenes), seed=int(cfg.seed), size=(h, w), gap=int(cfg.split_gap))
     scenes = sorted(p.name for p in root.iterdir() if p.is_dir())
     print(f"wrote {len(scenes)} scenes ({', '.join(scenes)}) of {h}x{w} px (H x W) to {root}")
