@@ -48,6 +48,17 @@ def test_unet_group_norm_matches_torch_in_channels_last(channels):
     assert ours.state_dict().keys() == reference.state_dict().keys()
 
 
+def test_unet_skip_convolution_equals_convolving_the_concatenation():
+    from dpcn.models.unet import _conv_concatenated
+
+    torch.manual_seed(0)
+    conv = torch.nn.Conv2d(5, 3, 3, padding=1).double()
+    a = torch.randn(2, 2, 7, 9, dtype=torch.float64, requires_grad=True)
+    b = torch.randn(2, 3, 7, 9, dtype=torch.float64, requires_grad=True)
+    torch.testing.assert_close(_conv_concatenated(conv, a, b), conv(torch.cat([a, b], dim=1)))
+    assert gradcheck(lambda x, y: _conv_concatenated(conv, x, y), (a, b))
+
+
 def test_unet_rejects_bad_sizes():
     with pytest.raises(ValueError, match="invalid U-Net size"):
         UNet(1, 1, base_channels=0)
