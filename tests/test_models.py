@@ -107,6 +107,21 @@ def test_dpcn_pair_result_does_not_depend_on_its_batch():
     torch.testing.assert_close(batched, alone, atol=1e-4, rtol=1e-4)
 
 
+def test_match_in_chunks_equals_one_batch_and_still_checks_inputs():
+    torch.manual_seed(2)
+    model = small_dpcn().eval()
+    t, s = torch.rand(5, 1, 32, 32), torch.rand(5, 1, 32, 32)
+    whole = model.match(t, s, chunk_size=5)
+    chunked = model.match(t, s, chunk_size=2)
+    torch.testing.assert_close(chunked.as_tensor(), whole.as_tensor(), atol=1e-4, rtol=1e-4)
+    torch.testing.assert_close(chunked.confidence, whole.confidence, atol=1e-4, rtol=1e-4)
+    s[4, 0, 3, 3] = float("inf")  # in the last chunk only
+    with pytest.raises(ValueError, match="source contains NaN or infinite"):
+        model.match(t, s, chunk_size=2)
+    with pytest.raises(ValueError, match="chunk_size"):
+        model.match(t, s, chunk_size=0)
+
+
 def test_temperature_is_learnable_or_fixed():
     assert small_dpcn(learnable_temperature=True).log_train_temperature.requires_grad
     fixed = small_dpcn(learnable_temperature=False, train_temperature=(0.05, 0.1))

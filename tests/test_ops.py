@@ -21,6 +21,7 @@ from dpcn.ops import (
     soft_argmax2d,
     spatial_softmax2d,
 )
+from dpcn.ops._checks import inputs_checked
 
 from .conftest import photo
 
@@ -73,6 +74,12 @@ class TestSpectrum:
         with pytest.raises(ValueError, match=r"\(B, C, H, W\)"):
             magnitude_spectrum(torch.rand(8, 8))
         with pytest.raises(ValueError, match="NaN"):
+            magnitude_spectrum(torch.full((1, 1, 8, 8), float("nan")))
+        with inputs_checked():  # inside a pipeline that checked its inputs: shapes only
+            magnitude_spectrum(torch.full((1, 1, 8, 8), float("nan")))
+            with pytest.raises(ValueError, match=r"\(B, C, H, W\)"):
+                magnitude_spectrum(torch.rand(8, 8))
+        with pytest.raises(ValueError, match="NaN"):  # and on again after it
             magnitude_spectrum(torch.full((1, 1, 8, 8), float("nan")))
         with pytest.raises(TypeError, match="floating"):
             magnitude_spectrum(torch.ones(1, 1, 8, 8, dtype=torch.int64))

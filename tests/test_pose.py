@@ -69,6 +69,17 @@ def test_pose_container_api():
         Pose.from_tensor(torch.zeros(2, 3))
 
 
+def test_pose_cat():
+    a = Pose.from_tensor(torch.tensor([[1.0, 2.0, 30.0, 1.1]]), confidence=torch.tensor([0.5]))
+    b = Pose.from_tensor(torch.tensor([[3.0, 4.0, -60.0, 0.9], [5.0, 6.0, 90.0, 1.0]]), torch.tensor([0.2, 0.9]))
+    both = Pose.cat([a, b])
+    torch.testing.assert_close(both.as_tensor(), torch.cat([a.as_tensor(), b.as_tensor()]))
+    torch.testing.assert_close(both.confidence, torch.tensor([0.5, 0.2, 0.9]))
+    assert Pose.cat([a, Pose.from_tensor(b.as_tensor())]).confidence is None
+    with pytest.raises(ValueError, match="at least one"):
+        Pose.cat([])
+
+
 def test_sample_poses_ranges_and_seed():
     g = torch.Generator().manual_seed(1)
     poses = sample_poses(2000, g, translation=50.0, rotation=(-180.0, 180.0), scale=(0.8, 1.2))

@@ -18,7 +18,7 @@ import kornia
 import torch
 from torch import Tensor, nn
 
-from .ops._checks import check_pair, full_precision
+from .ops._checks import check_pair, full_precision, inputs_checked
 from .ops.correlation import correlation_surface, cross_power_spectrum
 from .ops.logpolar import log_polar, log_polar_grid, log_radius_step
 from .ops.soft_argmax import soft_argmax2d
@@ -278,12 +278,13 @@ class PhaseCorrelationEstimator(nn.Module):
 
     def forward(self, template: Tensor, source: Tensor) -> Pose:
         check_pair(template, source, min_size=8)
-        rs = estimate_rotation_scale(template, source, **self.rotation_scale_options)
-        angle, scale = rs.angle, rs.scale
-        unwarped = unwarp_rotation_scale(source, angle, scale)
-        for _ in range(self.refine):
-            residual = estimate_rotation_scale(template, unwarped, **self.rotation_scale_options)
-            angle, scale = angle + residual.angle, scale * residual.scale
+        with inputs_checked():
+            rs = estimate_rotation_scale(template, source, **self.rotation_scale_options)
+            angle, scale = rs.angle, rs.scale
             unwarped = unwarp_rotation_scale(source, angle, scale)
-        tr = estimate_translation(template, unwarped, angle, scale, **self.translation_options)
+            for _ in range(self.refine):
+                residual = estimate_rotation_scale(template, unwarped, **self.rotation_scale_options)
+                angle, scale = angle + residual.angle, scale * residual.scale
+                unwarped = unwarp_rotation_scale(source, angle, scale)
+            tr = estimate_translation(template, unwarped, angle, scale, **self.translation_options)
         return Pose(tr.tx, tr.ty, tr.angle, scale, tr.confidence)

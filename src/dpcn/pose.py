@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import json
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, fields
 from typing import Any
 
@@ -93,6 +93,16 @@ class Pose:
         if params.ndim != 2 or params.shape[-1] != 4:
             raise ValueError(f"expected a (B, 4) tensor of (tx, ty, angle, scale), got {tuple(params.shape)}")
         return cls(params[:, 0], params[:, 1], params[:, 2], params[:, 3], confidence)
+
+    @classmethod
+    def cat(cls, poses: Sequence[Pose]) -> Pose:
+        """Concatenate batches of poses (confidence kept only if every batch has one)."""
+        if not poses:
+            raise ValueError("Pose.cat needs at least one pose")
+        confidences = [p.confidence for p in poses]
+        confidence = None if any(c is None for c in confidences) else torch.cat(confidences)
+        params = (torch.cat([getattr(p, name) for p in poses]) for name in ("tx", "ty", "angle", "scale"))
+        return cls(*params, confidence)
 
     def as_tensor(self) -> Tensor:
         """Stack into a ``(B, 4)`` tensor of ``(tx, ty, angle, scale)``."""

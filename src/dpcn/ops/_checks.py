@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import functools
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import ParamSpec, TypeVar
 
 import torch
@@ -11,6 +13,21 @@ from torch import Tensor
 
 P = ParamSpec("P")
 R = TypeVar("R")
+
+# Off inside a pipeline whose inputs were scanned once at its entry: every later scan would
+# re-read a whole intermediate tensor (and on a GPU wait for it), for values computed from
+# finite inputs.
+_SCAN_VALUES = contextvars.ContextVar("dpcn_scan_values", default=True)
+
+
+@contextlib.contextmanager
+def inputs_checked() -> Iterator[None]:
+    """Within the block, :func:`check_image` checks shapes and types but not for NaN/inf."""
+    token = _SCAN_VALUES.set(False)
+    try:
+        yield
+    finally:
+        _SCAN_VALUES.reset(token)
 
 
 def check_image(image: object, name: str = "image", min_size: int = 2) -> Tensor:
@@ -27,7 +44,7 @@ def check_image(image: object, name: str = "image", min_size: int = 2) -> Tensor
         raise ValueError(
             f"{name} is too small: {image.shape[-2]}x{image.shape[-1]} pixels, need at least {min_size}x{min_size}"
         )
-    if not torch.isfinite(image).all():
+    if _SCAN_VALUES.get() and not torch.isfinite(image).all():
         raise ValueError(f"{name} contains NaN or infinite values")
     return image
 

@@ -14,6 +14,7 @@ from ..estimator import PhaseCorrelationEstimator, unwarp_rotation_scale
 from ..io import prepare_pair
 from ..metrics import format_table, pose_errors, summarize, thresholds_for, write_csv
 from ..models.dpcn import DPCN
+from ..ops._checks import inputs_checked
 from ..pose import Pose, wrap_angle
 from .losses import DPCNLoss, rotation_scale_target, translation_target
 
@@ -138,6 +139,10 @@ class DPCNModule(_EvaluationMixin, L.LightningModule):
     def training_step(self, batch: dict[str, Tensor], batch_idx: int) -> Tensor:
         template, source, gt = batch["template"], batch["source"], batch["pose"]
         self.model.check_inputs(template, source)
+        with inputs_checked():
+            return self._training_loss(template, source, gt)
+
+    def _training_loss(self, template: Tensor, source: Tensor, gt: Tensor) -> Tensor:
         tx, ty, angle, scale = gt.unbind(dim=1)
         rs, _ = self.model.rotation_scale(template, source)
 
