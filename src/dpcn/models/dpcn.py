@@ -224,9 +224,9 @@ class DPCN(nn.Module):
         try:
             if template.shape[0] <= chunk_size:
                 return self(template, source).pose
-            self.check_inputs(template, source)
+            self.check_inputs(template, source)  # the whole batch once; chunks check shapes only
             chunks = zip(template.split(chunk_size), source.split(chunk_size), strict=True)
-            poses = [self(t, s).pose for t, s in chunks]
-            return Pose.cat(poses)
+            with inputs_checked():
+                return Pose.cat([self(t, s).pose for t, s in chunks])
         finally:
             self.train(was_training)
