@@ -22,7 +22,19 @@ from dpcn import PhaseCorrelationEstimator
 from dpcn.models import DPCN
 
 CONF = Path(__file__).resolve().parents[1] / "conf" / "model"
-ARCHITECTURE = ("feature_channels", "base_channels", "depth", "norm", "input_skip", "upsample", "n_angles", "n_radii")
+ARCHITECTURE = (
+    "feature_channels",
+    "base_channels",
+    "depth",
+    "norm",
+    "input_skip",
+    "upsample",
+    "rotation_scale_downsample",
+    "rotation_scale_base_channels",
+    "rotation_scale_depth",
+    "n_angles",
+    "n_radii",
+)
 
 
 def preset(name: str) -> dict:

@@ -7,7 +7,7 @@ from torch.autograd import gradcheck
 
 from dpcn.models import DPCN, UNet, half_turn
 
-from .conftest import cv2_warp, photo
+from .conftest import angle_error, cv2_warp, photo
 
 
 def small_dpcn(**kw):
@@ -134,4 +134,44 @@ def test_gradcheck_end_to_end_to_both_images():
     model = DPCN(base_channels=2, depth=1, image_size=None, n_angles=12, n_radii=10, window=1).double().eval()
     t = torch.rand(1, 1, 12, 12, dtype=torch.float64, requires_grad=True)
     s = torch.rand(1, 1, 12, 12, dtype=torch.float64, requires_grad=True)
+    assert gradcheck(lambda a, b: model(a, b).pose.as_tensor(), (t, s), eps=1e-6, atol=1e-4)
+
+
+def test_phase1_downsample_and_width_options_shape_the_phase1_unets():
+    model = small_dpcn(rotation_scale_downsample=2, rotation_scale_base_channels=3, rotation_scale_depth=2).eval()
+    out = model(torch.rand(2, 1, 32, 32), torch.rand(2, 1, 32, 32))
+    assert out.features["rs_template"].shape == (2, 1, 16, 16)
+    assert out.features["t_template"].shape == (2, 1, 32, 32)
+    assert out.rotation_scale.surface.shape == (2, 32, 32)  # the log-polar grid is unchanged
+    assert model.rs_template.stem[0].out_channels == 3 and model.rs_template.depth == 2
+    assert model.t_template.stem[0].out_channels == 2 and model.t_template.depth == 1
+    with pytest.raises(ValueError, match="rotation_scale_downsample"):
+        small_dpcn(rotation_scale_downsample=0)
+    tiny_images = DPCN(base_channels=2, depth=1, image_size=None, rotation_scale_downsample=4, n_angles=8, n_radii=8)
+    with pytest.raises(ValueError, match="at least 32"):
+        tiny_images.match(torch.rand(1, 1, 16, 16), torch.rand(1, 1, 16, 16))
+
+
+def test_phase1_at_half_resolution_recovers_an_opencv_pose():
+    # With input_skip an untrained DPCN is classical phase correlation (on softplus images),
+    # so this checks the half-resolution phase 1 against OpenCV's warp, on a real photograph.
+    torch.manual_seed(0)
+    image = photo("camera", (128, 128))
+    source = cv2_warp(image, 6.0, -4.0, 35.0, 1.1)
+    model = DPCN(base_channels=2, depth=1, input_skip=True, image_size=(128, 128), rotation_scale_downsample=2).eval()
+    pose = model.match(torch.from_numpy(image)[None, None], torch.from_numpy(source)[None, None])
+    assert angle_error(pose.angle, 35.0) < 0.5
+    assert abs(float(pose.scale) - 1.1) < 0.01
+    assert abs(float(pose.tx) - 6.0) < 1.0 and abs(float(pose.ty) + 4.0) < 1.0
+
+
+def test_gradcheck_end_to_end_with_phase1_at_half_resolution():
+    torch.manual_seed(0)
+    model = (
+        DPCN(base_channels=2, depth=1, image_size=None, n_angles=12, n_radii=10, window=1, rotation_scale_downsample=2)
+        .double()
+        .eval()
+    )
+    t = torch.rand(1, 1, 16, 16, dtype=torch.float64, requires_grad=True)
+    s = torch.rand(1, 1, 16, 16, dtype=torch.float64, requires_grad=True)
     assert gradcheck(lambda a, b: model(a, b).pose.as_tensor(), (t, s), eps=1e-6, atol=1e-4)

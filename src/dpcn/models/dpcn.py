@@ -18,6 +18,7 @@ from dataclasses import dataclass
 
 import torch
 from torch import Tensor, nn
+from torch.nn import functional as F
 
 from ..estimator import (
     RotationScale,
@@ -58,9 +59,15 @@ class DPCN(nn.Module):
         in_channels: image channels (1 or 3).
         feature_channels: channels of each U-Net's output (pooled by the correlation).
         base_channels, depth: U-Net width and number of down-sampling levels (see
-            :class:`~dpcn.models.unet.UNet`); presets: ``tiny`` (4, 3), ``paper`` (32, 4).
+            :class:`~dpcn.models.unet.UNet`); presets: ``tiny`` (4, 3; phase 1: 8, 4 at half size), ``paper`` (32, 4).
         norm, input_skip, upsample: U-Net normalisation, input skip and decoder upsampling
             (see :class:`~dpcn.models.unet.UNet`).
+        rotation_scale_downsample: phase 1 runs its U-Nets on the images shrunk by this
+            integer factor (a d x d box average). Rotation and scale survive the shrinking, and
+            at half size a U-Net sees twice the context for a quarter of the cost; phase 2
+            (translation, which needs every pixel) always runs at full size.
+        rotation_scale_base_channels, rotation_scale_depth: width and depth of the phase-1
+            U-Nets (``None``: ``base_channels`` / ``depth``).
         image_size: ``(H, W)`` the model is built for; other sizes raise a clear error
             (``None`` accepts any size).
         n_angles, n_radii, min_radius, max_radius, highpass: phase-1 log-polar settings.
@@ -82,6 +89,9 @@ class DPCN(nn.Module):
         norm: str = "group",
         input_skip: bool = False,
         upsample: str = "bilinear",
+        rotation_scale_downsample: int = 1,
+        rotation_scale_base_channels: int | None = None,
+        rotation_scale_depth: int | None = None,
         image_size: tuple[int, int] | list[int] | None = (256, 256),
         n_angles: int = 256,
         n_radii: int = 256,
@@ -100,11 +110,17 @@ class DPCN(nn.Module):
         super().__init__()
         log_polar_grid(8, 8, n_angles, n_radii, min_radius, max_radius)  # validates the grid
 
-        def unet() -> UNet:
-            return UNet(in_channels, feature_channels, base_channels, depth, norm, input_skip, upsample)
+        if not isinstance(rotation_scale_downsample, int) or rotation_scale_downsample < 1:
+            raise ValueError(f"rotation_scale_downsample must be an integer >= 1, got {rotation_scale_downsample!r}")
 
-        self.rs_template, self.rs_source = unet(), unet()
-        self.t_template, self.t_source = unet(), unet()
+        def unet(width: int, levels: int) -> UNet:
+            return UNet(in_channels, feature_channels, width, levels, norm, input_skip, upsample)
+
+        rs_width = base_channels if rotation_scale_base_channels is None else rotation_scale_base_channels
+        rs_levels = depth if rotation_scale_depth is None else rotation_scale_depth
+        self.rs_template, self.rs_source = unet(rs_width, rs_levels), unet(rs_width, rs_levels)
+        self.t_template, self.t_source = unet(base_channels, depth), unet(base_channels, depth)
+        self.rotation_scale_downsample = rotation_scale_downsample
         self.in_channels = in_channels
         self.image_size = None if image_size is None else (int(image_size[0]), int(image_size[1]))
         self.n_angles, self.n_radii = n_angles, n_radii
@@ -136,7 +152,7 @@ class DPCN(nn.Module):
         return self.log_train_temperature.exp()
 
     def check_inputs(self, template: Tensor, source: Tensor) -> None:
-        check_pair(template, source, min_size=8)
+        check_pair(template, source, min_size=8 * self.rotation_scale_downsample)
         if template.shape[1] != self.in_channels:
             raise ValueError(f"this model takes {self.in_channels}-channel images, got {template.shape[1]} channels")
         if self.image_size is not None and tuple(template.shape[-2:]) != self.image_size:
@@ -148,7 +164,14 @@ class DPCN(nn.Module):
 
     # ------------------------------------------------------------------ phases
     def rotation_scale(self, template: Tensor, source: Tensor) -> tuple[RotationScale, dict[str, Tensor]]:
-        """Phase 1: features, then rotation (mod 180 degrees) and scale."""
+        """Phase 1: features, then rotation (mod 180 degrees) and scale.
+
+        The features are ``(B, C, H / d, W / d)`` with ``d = rotation_scale_downsample``.
+        """
+        if self.rotation_scale_downsample > 1:
+            d = self.rotation_scale_downsample
+            template = F.avg_pool2d(template, d, ceil_mode=True)
+            source = F.avg_pool2d(source, d, ceil_mode=True)
         features = {"rs_template": self.rs_template(template), "rs_source": self.rs_source(source)}
         rs = estimate_rotation_scale(
             features["rs_template"],
