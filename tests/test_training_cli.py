@@ -220,3 +220,18 @@ def test_ddp_with_two_cpu_processes(tmp_path):
     ckpt = torch.load(tmp_path / "ddp/checkpoints/last.ckpt", weights_only=False)
     # 8 pairs per epoch, batch 4, split over 2 ranks: one optimiser step per rank
     assert ckpt["global_step"] == 1
+
+
+@pytest.mark.parametrize(("preset", "downsample", "width", "depth"), [("tiny", 2, 8, 4), ("tiny_full", 1, 4, 3)])
+def test_model_presets_compose_and_build(preset, downsample, width, depth):
+    from hydra import compose, initialize_config_dir
+    from hydra.utils import instantiate
+
+    with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
+        cfg = compose("config", overrides=[f"model={preset}"])
+    module = instantiate(cfg.model, _convert_="all")
+    net = module.model
+    assert net.rotation_scale_downsample == downsample
+    assert net.rs_template.stem[0].out_channels == width and net.rs_template.depth == depth
+    assert net.t_template.stem[0].out_channels == 4 and net.t_template.depth == 3
+    assert net.image_size == (256, 256)
