@@ -235,3 +235,24 @@ def test_model_presets_compose_and_build(preset, downsample, width, depth):
     assert net.rs_template.stem[0].out_channels == width and net.rs_template.depth == depth
     assert net.t_template.stem[0].out_channels == 4 and net.t_template.depth == 3
     assert net.image_size == (256, 256)
+
+
+@pytest.mark.parametrize(
+    ("overrides", "model"),
+    [
+        (["data=l2sat"], "tiny_full"),
+        (["data=s2d"], "tiny_full"),
+        (["data=sim_heterogeneous"], "tiny"),
+        (["data=l2d", "model=tiny"], "tiny"),  # the command line wins, in either order
+        (["model=tiny", "data=l2d"], "tiny"),
+        (["data=s2sat", "model=classical"], "classical"),
+    ],
+)
+def test_map_pairs_default_to_tiny_full_unless_a_model_is_named(overrides, model):
+    from hydra import compose, initialize_config_dir
+
+    with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
+        cfg = compose("config", overrides=overrides, return_hydra_config=True)
+    assert cfg.hydra.runtime.choices.model == model
+    data = next(o for o in overrides if o.startswith("data=")).removeprefix("data=")
+    assert cfg.data.name == data
