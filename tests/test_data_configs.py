@@ -41,6 +41,10 @@ def test_map_pair_configs_read_a_root(maps_root, pair):
     assert item["template"].shape == (1, 96, 96) and item["source"].shape == (1, 96, 96)
     assert dm.translation_threshold == 10.0
     assert len(dm.datasets["test"]) == 500
+    # The paper's protocol: the test scene is held out of training and validation.
+    assert [s.name for s in dm.datasets["train"].scenes] == ["scene_a", "scene_b"]
+    assert [s.name for s in dm.datasets["val"].scenes] == ["scene_a", "scene_b"]
+    assert [s.name for s in dm.datasets["test"].scenes] == ["scene_c"]
 
 
 def test_map_pairs_geometry_follows_the_pose_convention(tmp_path):
@@ -51,7 +55,7 @@ def test_map_pairs_geometry_follows_the_pose_convention(tmp_path):
         folder.mkdir(exist_ok=True)
         cv2.imwrite(str(folder / f"{name}.png"), image)
     cfg = compose_data("data=l2d", f"data.root={tmp_path}", "image_size=96", "data.dataset.translation=10",
-                       "data.dataset.scale=[0.9,1.1]", "data.train_scenes=null")  # fmt: skip
+                       "data.dataset.scale=[0.9,1.1]", "data.test_scenes=null")  # fmt: skip
     dm = instantiate(cfg.data)
     dm.setup("fit")
     for i in range(3):
@@ -73,7 +77,8 @@ def test_builtin_scene_when_no_root(tmp_path, monkeypatch, caplog):
         dm.setup("fit")
     assert any("built-in procedural scenes" in r.getMessage() for r in caplog.records)
     root = tmp_path / f"builtin-scenes-{maps.BUILTIN_VERSION}"
-    assert sorted(p.name for p in root.iterdir() if p.is_dir()) == ["scene_a", "scene_b", "scene_c"]
+    assert sorted(p.name for p in root.iterdir() if p.is_dir()) == [f"scene_{c}" for c in "abcdefgh"]
+    assert [s.name for s in dm.datasets["train"].scenes] == [f"scene_{c}" for c in "abdefgh"]
     assert dm.datasets["train"][0]["template"].shape == (1, 64, 64)
 
 

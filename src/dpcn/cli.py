@@ -32,7 +32,7 @@ commands: {", ".join(COMMANDS)}
       prints the paper's metrics table and writes metrics_<stage>.csv in the run directory
   predict template=A.png source=B.png [ckpt_path=model.ckpt]
       prints {{"tx", "ty", "angle", "scale", "confidence"}} as JSON
-  make-data out=DIR [n_scenes=3] [scene_size=[1280,2560]] [split_gap=630] [seed=0]
+  make-data out=DIR [n_scenes=8] [scene_size=[1280,2560]] [split_gap=630] [seed=0]
       writes procedural scenes (lidar, stereo, drone, satellite + masks + regions.json) in
       the layout that data=l2d|l2sat|s2d|s2sat data.root=DIR reads
   -m key=a,b ...   a Hydra multirun sweep (runs under multirun/<time>/<n>/)

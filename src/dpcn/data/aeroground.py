@@ -252,6 +252,8 @@ class MapPairs(Dataset):
         pair: one of :data:`PAIRS` (``l2d``, ``l2sat``, ``s2d``, ``s2sat``).
         split: name of the regions to draw centres from (``train``, ``val``, ``test``...).
         scenes: scene folder names to use (default: all scene folders of ``root``).
+        exclude_scenes: scene folder names to leave out of ``scenes`` (e.g. the test scenes,
+            so that ``scenes=None`` trains on every other scene); each must exist.
         length: number of items per epoch.
         size: crop size, int or ``(H, W)``.
         seed: base seed.
@@ -267,6 +269,7 @@ class MapPairs(Dataset):
         pair: str = "l2sat",
         split: str = "train",
         scenes: list[str] | None = None,
+        exclude_scenes: list[str] | None = None,
         length: int = 1000,
         size: int | tuple[int, int] = 256,
         seed: int = 0,
@@ -305,7 +308,7 @@ class MapPairs(Dataset):
         self._warned: set[str] = set()
 
         self.template_modality, self.source_modality = PAIRS[pair]
-        names = self._scene_names(scenes)
+        names = self._scene_names(scenes, exclude_scenes)
         margin = self._worst_extent()
         self.scenes: list[_Scene] = []
         # (scene index, centre rectangle x0, y0, x1, y1)
@@ -332,7 +335,7 @@ class MapPairs(Dataset):
 
     # ---- construction helpers
 
-    def _scene_names(self, scenes: list[str] | None) -> list[str]:
+    def _scene_names(self, scenes: list[str] | None, exclude: list[str] | None = None) -> list[str]:
         if not self.root.is_dir():
             raise DataError(f"data root {self.root} does not exist or is not a folder")
         available = sorted(p.name for p in self.root.iterdir() if p.is_dir() and not p.name.startswith((".", "_")))
@@ -341,16 +344,26 @@ class MapPairs(Dataset):
                 f"no scene folders in {self.root} (expected {self.root}/<scene>/"
                 f"{{lidar,stereo,drone,satellite}}.png ...)"
             )
-        if scenes is None:
-            return available
-        if isinstance(scenes, str):
-            scenes = [scenes]
-        unknown = [s for s in scenes if s not in available]
-        if unknown:
-            raise DataError(f"unknown scene(s) {unknown} in {self.root}; available: {available}")
-        if not scenes:
+
+        def known(names: list[str] | str, what: str) -> list[str]:
+            names = [names] if isinstance(names, str) else list(names)
+            unknown = [s for s in names if s not in available]
+            if unknown:
+                raise DataError(f"unknown scene(s) {unknown} in {what} for {self.root}; available: {available}")
+            return names
+
+        chosen = available if scenes is None else known(scenes, "scenes")
+        if scenes is not None and not chosen:
             raise DataError("scenes is an empty list")
-        return list(scenes)
+        if exclude:
+            left_out = set(known(exclude, "exclude_scenes"))
+            chosen = [s for s in chosen if s not in left_out]
+            if not chosen:
+                raise DataError(
+                    f"no scene left for split {self.split!r}: every scene of {self.root} is excluded "
+                    f"({sorted(left_out)}; data.test_scenes are kept out of training)"
+                )
+        return chosen
 
     def _modality_file(self, folder: Path, modality: str, required: bool = True) -> Path | None:
         found = _find_image(folder, modality)

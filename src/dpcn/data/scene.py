@@ -733,7 +733,7 @@ SPLIT_GAP = 630
 
 def make_dataset(
     out: str | Path,
-    n_scenes: int = 3,
+    n_scenes: int = 8,
     seed: int = 0,
     size: tuple[int, int] = (1280, 2560),
     train_fraction: float = 0.6,
