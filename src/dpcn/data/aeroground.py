@@ -357,12 +357,13 @@ class MapPairs(Dataset):
             raise DataError("scenes is an empty list")
         if exclude:
             left_out = set(known(exclude, "exclude_scenes"))
-            chosen = [s for s in chosen if s not in left_out]
-            if not chosen:
+            kept = [s for s in chosen if s not in left_out]
+            if not kept:
                 raise DataError(
-                    f"no scene left for split {self.split!r}: every scene of {self.root} is excluded "
-                    f"({sorted(left_out)}; data.test_scenes are kept out of training)"
+                    f"no scene left for split {self.split!r}: all of {chosen} in {self.root} are "
+                    f"excluded (exclude_scenes={sorted(left_out)})"
                 )
+            chosen = kept
         return chosen
 
     def _modality_file(self, folder: Path, modality: str, required: bool = True) -> Path | None:
