@@ -398,7 +398,7 @@ def test_map_pairs_errors(tmp_path):
     assert len(MapPairs(r, split="test", length=2, **kw)) == 2  # no file: one region
     with pytest.raises(DataError, match="unknown scene"):
         MapPairs(r, scenes=["nope"], **kw)
-    with pytest.raises(DataError, match=r"unknown scene\(s\) \['nope'\] in exclude_scenes"):
+    with pytest.raises(DataError, match=r"unknown scene\(s\) \['nope'\] in exclude_scenes \(data.test_scenes"):
         MapPairs(r, exclude_scenes=["nope"], **kw)
     with pytest.raises(DataError, match="no scene left for split 'test'.*excluded"):
         MapPairs(r, split="test", exclude_scenes=["sc"], **kw)

@@ -25,8 +25,9 @@ COMMANDS = ("fit", "validate", "test", "predict", "make-data")
 USAGE = f"""usage: python -m dpcn <command> [key=value ...] [-m] [--cfg job]
 
 commands: {", ".join(COMMANDS)}
-  fit [data=sim_heterogeneous|sim_homogeneous|sim_dynamic] [model=tiny|paper] [loss=default|l1|kl|paper]
-      [trainer=auto|cpu|gpu|ddp] [experiment=quick] [ckpt_path=.../last.ckpt to resume]
+  fit [data=sim_heterogeneous|sim_homogeneous|sim_dynamic|l2d|l2sat|s2d|s2sat|csv]
+      [model=tiny|tiny_full|paper] [loss=default|l1|kl|paper] [trainer=auto|cpu|gpu|ddp]
+      [experiment=quick] [ckpt_path=.../last.ckpt to resume]
       trains DPCN; run directory outputs/fit/<time>/ (checkpoints/, metrics.csv, .hydra/)
   validate|test ckpt_path=model.ckpt [data=...]     (or model=classical, no checkpoint)
       prints the paper's metrics table and writes metrics_<stage>.csv in the run directory

@@ -356,7 +356,8 @@ class MapPairs(Dataset):
         if scenes is not None and not chosen:
             raise DataError("scenes is an empty list")
         if exclude:
-            left_out = set(known(exclude, "exclude_scenes"))
+            # the map data configs fill exclude_scenes from data.test_scenes: name both
+            left_out = set(known(exclude, "exclude_scenes (data.test_scenes in the map data configs)"))
             kept = [s for s in chosen if s not in left_out]
             if not kept:
                 raise DataError(
