@@ -98,7 +98,7 @@ def _crashing_run(run_dir: Path, crash_after_step: int, *extra: str) -> None:
                 raise RuntimeError("simulated crash")
 
     with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
-        cfg = compose("config", overrides=[*(o for o in SMALL if not o.startswith("trainer.enable")), *extra])
+        cfg = compose("config", overrides=[*SMALL, *extra])
     L.seed_everything(cfg.seed, workers=True)
     module = instantiate(cfg.model, _convert_="all")
     datamodule = instantiate(cfg.data)
