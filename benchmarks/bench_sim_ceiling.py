@@ -38,14 +38,18 @@ import time
 import cv2
 import numpy as np
 import torch
-from torch.nn import functional as F
 
 import dpcn.data.simulation as sim
 from dpcn import PhaseCorrelationEstimator
-from dpcn.estimator import estimate_rotation_scale
+from dpcn.metrics import pose_errors, summarize, thresholds_for
 from dpcn.pose import wrap_angle
 
 _KERNEL = np.ones((3, 3), np.uint8)
+# printed column -> key of dpcn.metrics.summarize (the paper's sim thresholds, then the strict ones)
+COLUMNS = {
+    "x@5": "acc_x@5", "y@5": "acc_y@5", "rot@1": "acc_rot@1", "s@0.2": "acc_scale@0.2",
+    "x@1": "acc_x@1", "y@1": "acc_y@1", "rot@0.5": "acc_rot@0.5", "s@0.02": "acc_scale@0.02",
+}  # fmt: skip
 
 
 def _boundaries(values: np.ndarray, threshold: float) -> np.ndarray:
@@ -99,28 +103,11 @@ def batches(mode: str, pairs: int, contrast: float = 0.0, batch: int = 10):
 
 
 def evaluate(mode: str, pairs: int, contrast: float = 0.0) -> dict[str, float]:
+    """Accuracies (%) of the classical estimator on the pairs rendered as ``mode``."""
     estimator = PhaseCorrelationEstimator()
-    errors = []
-    for template, source, gt in batches(mode, pairs, contrast):
-        pose = estimator(template, source)
-        errors.append(
-            torch.stack(
-                [pose.tx - gt[:, 0], pose.ty - gt[:, 1], wrap_angle(pose.angle - gt[:, 2]), pose.scale - gt[:, 3]],
-                dim=1,
-            ).abs()
-        )
-    e = torch.cat(errors).numpy()
-    share = lambda column, t: 100.0 * float((e[:, column] <= t).mean())  # noqa: E731
-    return {
-        "x@5": share(0, 5),
-        "y@5": share(1, 5),
-        "rot@1": share(2, 1),
-        "s@0.2": share(3, 0.2),
-        "x@1": share(0, 1),
-        "y@1": share(1, 1),
-        "rot@0.5": share(2, 0.5),
-        "s@0.02": share(3, 0.02),
-    }
+    errors = [pose_errors(estimator(t, s).as_tensor(), gt) for t, s, gt in batches(mode, pairs, contrast)]
+    metrics = summarize(torch.cat(errors), thresholds_for(5.0))
+    return {column: metrics[key] for column, key in COLUMNS.items()}
 
 
 @torch.no_grad()
@@ -129,15 +116,9 @@ def stage1_sides(checkpoint: str, pairs: int, contrast: float) -> dict[str, floa
     from dpcn.training.module import DPCNModule
 
     model = DPCNModule.load_from_checkpoint(checkpoint, map_location="cpu").model.eval()
-    options = dict(
-        n_angles=model.n_angles, n_radii=model.n_radii, min_radius=model.min_radius, max_radius=model.max_radius,
-        highpass=model.highpass, sigma=model.rotation_sigma, temperature=model.rotation_temperature,
-        window=model.window, scale_range=model.scale_range,
-    )  # fmt: skip
-    d = model.rotation_scale_downsample
 
     def ideal(image: torch.Tensor, channels: int) -> torch.Tensor:
-        return (F.avg_pool2d(image, d, ceil_mode=True) if d > 1 else image).repeat(1, channels, 1, 1)
+        return model.rotation_scale_input(image).repeat(1, channels, 1, 1)
 
     hits: dict[str, list[torch.Tensor]] = {}
     streams = zip(
@@ -154,7 +135,7 @@ def stage1_sides(checkpoint: str, pairs: int, contrast: float) -> dict[str, floa
             f"visible>{contrast:g} / learned": (ideal(visible_t, c), learned_s),
         }
         for name, (a, b) in combos.items():
-            angle = estimate_rotation_scale(a, b, **options).angle
+            angle = model.rotation_scale_from_features(a, b).angle
             hits.setdefault(name, []).append(wrap_angle(angle - gt[:, 2], period=180.0).abs() <= 1.0)
     return {name: 100.0 * float(torch.cat(h).float().mean()) for name, h in hits.items()}
 
@@ -172,13 +153,12 @@ def main() -> None:
     runs = [("pixels", 0.0), ("gradient", 0.0), ("all-boundaries", 0.0)]
     runs += [(f"visible>{c:g}", c) for c in args.contrast]
     print(f"sim_heterogeneous test pairs (seed 2), first {args.pairs}; classical estimator; Acc in %")
-    header = ["features", "x@5", "y@5", "rot@1", "s@0.2", "x@1", "y@1", "rot@0.5", "s@0.02"]
-    print(("{:<18}" + "{:>8}" * 8).format(*header))
+    print(("{:<18}" + "{:>8}" * len(COLUMNS)).format("features", *COLUMNS))
     for name, contrast in runs:
         started = time.perf_counter()
         mode = "visible" if name.startswith("visible") else name
         acc = evaluate(mode, args.pairs, contrast)
-        row = ("{:<18}" + "{:>8.1f}" * 8).format(name, *acc.values())
+        row = ("{:<18}" + "{:>8.1f}" * len(COLUMNS)).format(name, *acc.values())
         print(f"{row}   ({time.perf_counter() - started:.0f} s)", flush=True)
     if args.checkpoint:
         print(f"\nstage 1 of {args.checkpoint}, rotation (mod 180 degrees) within 1 degree, %")

@@ -145,6 +145,11 @@ def test_phase1_downsample_and_width_options_shape_the_phase1_unets():
     assert out.rotation_scale.surface.shape == (2, 32, 32)  # the log-polar grid is unchanged
     assert model.rs_template.stem[0].out_channels == 3 and model.rs_template.depth == 2
     assert model.t_template.stem[0].out_channels == 2 and model.t_template.depth == 1
+    # phase 1 from given feature maps: the model's own estimate from its own features
+    again = model.rotation_scale_from_features(out.features["rs_template"], out.features["rs_source"])
+    torch.testing.assert_close(again.surface, out.rotation_scale.surface)
+    image = torch.rand(1, 1, 32, 32)
+    torch.testing.assert_close(model.rotation_scale_input(image), image.view(1, 1, 16, 2, 16, 2).mean(dim=(3, 5)))
     with pytest.raises(ValueError, match="rotation_scale_downsample"):
         small_dpcn(rotation_scale_downsample=0)
     tiny_images = DPCN(base_channels=2, depth=1, image_size=None, rotation_scale_downsample=4, n_angles=8, n_radii=8)

@@ -163,19 +163,28 @@ class DPCN(nn.Module):
             )
 
     # ------------------------------------------------------------------ phases
+    def rotation_scale_input(self, image: Tensor) -> Tensor:
+        """An image (or any map) shrunk as phase 1 sees it: ``(B, C, H / d, W / d)``."""
+        d = self.rotation_scale_downsample
+        return F.avg_pool2d(image, d, ceil_mode=True) if d > 1 else image
+
     def rotation_scale(self, template: Tensor, source: Tensor) -> tuple[RotationScale, dict[str, Tensor]]:
         """Phase 1: features, then rotation (mod 180 degrees) and scale.
 
         The features are ``(B, C, H / d, W / d)`` with ``d = rotation_scale_downsample``.
         """
-        if self.rotation_scale_downsample > 1:
-            d = self.rotation_scale_downsample
-            template = F.avg_pool2d(template, d, ceil_mode=True)
-            source = F.avg_pool2d(source, d, ceil_mode=True)
-        features = {"rs_template": self.rs_template(template), "rs_source": self.rs_source(source)}
-        rs = estimate_rotation_scale(
-            features["rs_template"],
-            features["rs_source"],
+        features = {
+            "rs_template": self.rs_template(self.rotation_scale_input(template)),
+            "rs_source": self.rs_source(self.rotation_scale_input(source)),
+        }
+        return self.rotation_scale_from_features(features["rs_template"], features["rs_source"]), features
+
+    def rotation_scale_from_features(self, template_features: Tensor, source_features: Tensor) -> RotationScale:
+        """Phase 1's estimate from ``(B, C, h, w)`` feature maps, with this model's log-polar
+        and peak settings (also for maps from elsewhere, e.g. to compare extractors)."""
+        return estimate_rotation_scale(
+            template_features,
+            source_features,
             n_angles=self.n_angles,
             n_radii=self.n_radii,
             min_radius=self.min_radius,
@@ -186,7 +195,6 @@ class DPCN(nn.Module):
             window=self.window,
             scale_range=self.scale_range,
         )
-        return rs, features
 
     def translation(
         self, template: Tensor, unwarped_source: Tensor, angle: Tensor, scale: Tensor, resolve_180: bool = True
