@@ -42,7 +42,9 @@ import torch
 import dpcn.data.simulation as sim
 from dpcn import PhaseCorrelationEstimator
 from dpcn.metrics import pose_errors, summarize, thresholds_for
+from dpcn.models import DPCN
 from dpcn.pose import wrap_angle
+from dpcn.training.module import CheckpointError, load_matcher
 
 _KERNEL = np.ones((3, 3), np.uint8)
 # printed column -> key of dpcn.metrics.summarize (the paper's sim thresholds, then the strict ones)
@@ -111,11 +113,9 @@ def evaluate(mode: str, pairs: int, contrast: float = 0.0) -> dict[str, float]:
 
 
 @torch.no_grad()
-def stage1_sides(checkpoint: str, pairs: int, contrast: float) -> dict[str, float]:
+def stage1_sides(model: DPCN, pairs: int, contrast: float) -> dict[str, float]:
     """Stage-1 rotation (mod 180 degrees) Acc@1 of learned vs ideal features, per side."""
-    from dpcn.training.module import DPCNModule
-
-    model = DPCNModule.load_from_checkpoint(checkpoint, map_location="cpu").model.eval()
+    model.eval()
 
     def ideal(image: torch.Tensor, channels: int) -> torch.Tensor:
         return model.rotation_scale_input(image).repeat(1, channels, 1, 1)
@@ -148,7 +148,17 @@ def main() -> None:
     parser.add_argument("--checkpoint", help="a trained DPCN checkpoint: which stage-1 extractor loses the pairs")
     parser.add_argument("--sides-contrast", type=float, default=0.05, help="template threshold of the per-side check")
     args = parser.parse_args()
+    if args.pairs < 1 or args.threads < 1:
+        parser.error("--pairs and --threads must be >= 1")
+    if min([*args.contrast, args.sides_contrast]) < 0:
+        parser.error("contrasts must be >= 0")
     torch.set_num_threads(args.threads)
+    model = None
+    if args.checkpoint:  # before the long part: a bad path fails at once
+        try:
+            model = load_matcher(args.checkpoint).model
+        except CheckpointError as error:
+            parser.error(str(error))
 
     runs = [("pixels", 0.0), ("gradient", 0.0), ("all-boundaries", 0.0)]
     runs += [(f"visible>{c:g}", c) for c in args.contrast]
@@ -160,10 +170,10 @@ def main() -> None:
         acc = evaluate(mode, args.pairs, contrast)
         row = ("{:<18}" + "{:>8.1f}" * len(COLUMNS)).format(name, *acc.values())
         print(f"{row}   ({time.perf_counter() - started:.0f} s)", flush=True)
-    if args.checkpoint:
+    if model is not None:
         print(f"\nstage 1 of {args.checkpoint}, rotation (mod 180 degrees) within 1 degree, %")
         print("template features / source features")
-        for name, acc in stage1_sides(args.checkpoint, args.pairs, args.sides_contrast).items():
+        for name, acc in stage1_sides(model, args.pairs, args.sides_contrast).items():
             print(f"  {name:<32}{acc:>6.1f}")
 
 
