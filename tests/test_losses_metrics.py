@@ -1,10 +1,13 @@
 """Losses (against the classical estimator's own surfaces) and the paper's metrics."""
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
+from hydra import compose, initialize_config_dir
+from hydra.utils import instantiate
 from torch.autograd import gradcheck
 
 from dpcn.estimator import estimate_rotation_scale, estimate_translation, unwarp_rotation_scale
@@ -109,3 +112,21 @@ def test_summarize_matches_hand_counts(tmp_path):
     assert header.startswith("name,acc_x@5") and row.startswith("dpcn,")
     assert math.isclose(float(row.split(",")[1]), 200 / 3)
     assert np.isclose(summarize(errors, thresholds_for(10.0))["acc_x@10"], 100.0)
+
+
+@pytest.mark.parametrize(
+    ("choice", "expected"),
+    [
+        ("default", dict(l1_rotation=0.1, l1_scale=1.0, l1_translation=1.0, kl_rotation_scale=1.0, kl_translation=3.0)),
+        ("l1", dict(l1_rotation=0.1, l1_scale=1.0, l1_translation=1.0, kl_rotation_scale=0.0, kl_translation=3.0)),
+        ("kl", dict(l1_rotation=0.1, l1_scale=0.0, l1_translation=0.0, kl_rotation_scale=1.0, kl_translation=3.0)),
+        ("paper", dict(l1_rotation=0.1, l1_scale=1.0, l1_translation=1.0, kl_rotation_scale=1.0, kl_translation=3.0)),
+    ],
+)
+def test_loss_configs_take_per_term_overrides(choice, expected):
+    """Every loss config composes from the real conf/ with per-term weight overrides (no ``+``)."""
+    conf = Path(__file__).resolve().parents[1] / "conf"
+    with initialize_config_dir(config_dir=str(conf), version_base="1.3"):
+        cfg = compose("config", overrides=[f"loss={choice}", "loss.l1_rotation=0.1", "loss.kl_translation=3"])
+    loss = DPCNLoss(**instantiate(cfg.loss))
+    assert loss.weights == pytest.approx(expected)
