@@ -110,23 +110,25 @@ class DPCNLoss(nn.Module):
         kl_translation: float | None = None,
     ) -> None:
         super().__init__()
-        l1_rotation = l1_weight if l1_rotation is None else l1_rotation
-        l1_scale = l1_weight if l1_scale is None else l1_scale
-        l1_translation = l1_weight if l1_translation is None else l1_translation
-        kl_rotation_scale = kl_weight if kl_rotation_scale is None else kl_rotation_scale
-        kl_translation = kl_weight if kl_translation is None else kl_translation
-        if sigma <= 0:
-            raise ValueError(f"loss sigma must be positive, got {sigma}")
-        weights = (l1_rotation, l1_scale, l1_translation, kl_rotation_scale, kl_translation)
-        if min(weights) < 0 or not any(w > 0 for w in weights):
-            raise ValueError(f"loss weights must be >= 0 and not all zero, got {weights}")
-        self.weights = dict(
+        overrides = dict(
             l1_rotation=l1_rotation,
             l1_scale=l1_scale,
             l1_translation=l1_translation,
             kl_rotation_scale=kl_rotation_scale,
             kl_translation=kl_translation,
         )
+        self.weights = {
+            key: (l1_weight if key.startswith("l1") else kl_weight) if value is None else value
+            for key, value in overrides.items()
+        }
+        for key, value in {**self.weights, "sigma": sigma}.items():
+            if isinstance(value, bool) or not isinstance(value, (int, float)):
+                raise ValueError(f"loss.{key} must be a number, got {value!r}")
+        if sigma <= 0:
+            raise ValueError(f"loss sigma must be positive, got {sigma}")
+        weights = tuple(self.weights.values())
+        if min(weights) < 0 or not any(w > 0 for w in weights):
+            raise ValueError(f"loss weights must be >= 0 and not all zero, got {weights}")
         self.sigma = sigma
 
     def forward(
