@@ -2,10 +2,15 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import cv2
 import numpy as np
 import pytest
 import torch
+from hydra import compose, initialize_config_dir
+
+CONF = Path(__file__).resolve().parents[1] / "conf"
 
 PHOTOS = ("camera", "astronaut", "coffee", "chelsea", "rocket", "brick", "gravel", "immunohistochemistry")
 
@@ -41,3 +46,9 @@ def angle_error(a: float | torch.Tensor, b: float | torch.Tensor) -> float:
 @pytest.fixture(autouse=True)
 def _seed() -> None:
     torch.manual_seed(0)
+
+
+def compose_config(*overrides: str, return_hydra_config: bool = False):
+    """The project's real ``conf/config.yaml`` composed with command-line style overrides."""
+    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+        return compose("config", overrides=list(overrides), return_hydra_config=return_hydra_config)

@@ -9,21 +9,13 @@ import cv2
 import numpy as np
 import pytest
 import torch
-from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 
 from dpcn.data.aeroground import DataError
 from dpcn.data.scene import make_dataset
 
-from .conftest import cv2_warp, photo
+from .conftest import compose_config, cv2_warp, photo
 from .test_training_cli import dpcn
-
-REPO = Path(__file__).resolve().parents[1]
-
-
-def compose_data(*overrides: str):
-    with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
-        return compose("config", overrides=list(overrides))
 
 
 @pytest.fixture(scope="module")
@@ -33,7 +25,7 @@ def maps_root(tmp_path_factory) -> Path:
 
 @pytest.mark.parametrize("pair", ["l2d", "l2sat", "s2d", "s2sat"])
 def test_map_pair_configs_read_a_root(maps_root, pair):
-    cfg = compose_data(f"data={pair}", f"data.root={maps_root}", "image_size=96", "data.dataset.translation=20")
+    cfg = compose_config(f"data={pair}", f"data.root={maps_root}", "image_size=96", "data.dataset.translation=20")
     dm = instantiate(cfg.data)
     dm.setup("fit")
     dm.setup("test")
@@ -54,7 +46,7 @@ def test_map_pairs_geometry_follows_the_pose_convention(tmp_path):
         folder = tmp_path / "scene"
         folder.mkdir(exist_ok=True)
         cv2.imwrite(str(folder / f"{name}.png"), image)
-    cfg = compose_data("data=l2d", f"data.root={tmp_path}", "image_size=96", "data.dataset.translation=10",
+    cfg = compose_config("data=l2d", f"data.root={tmp_path}", "image_size=96", "data.dataset.translation=10",
                        "data.dataset.scale=[0.9,1.1]", "data.test_scenes=null")  # fmt: skip
     dm = instantiate(cfg.data)
     dm.setup("fit")
@@ -71,7 +63,7 @@ def test_builtin_scene_when_no_root(tmp_path, monkeypatch, caplog):
     import dpcn.data.maps as maps
 
     monkeypatch.setattr(maps, "_announced", False)
-    cfg = compose_data("data=l2sat", "image_size=64", "data.dataset.translation=10")
+    cfg = compose_config("data=l2sat", "image_size=64", "data.dataset.translation=10")
     dm = instantiate(cfg.data)
     with caplog.at_level(logging.INFO, logger="dpcn"):
         dm.setup("fit")
@@ -83,7 +75,7 @@ def test_builtin_scene_when_no_root(tmp_path, monkeypatch, caplog):
 
 
 def test_missing_root_is_a_clear_error(tmp_path):
-    cfg = compose_data("data=l2sat", f"data.root={tmp_path / 'nope'}")
+    cfg = compose_config("data=l2sat", f"data.root={tmp_path / 'nope'}")
     dm = instantiate(cfg.data)
     with pytest.raises(DataError, match="data.root does not exist"):
         dm.setup("fit")
@@ -102,12 +94,12 @@ def test_csv_config(tmp_path):
         rows.append(f"p{i},{angle},{tx},{ty},1.0")
     (tmp_path / "gt.csv").write_text("\n".join(rows) + "\n")
     csv = str(tmp_path / "gt.csv")
-    cfg = compose_data("data=csv", f"data.train_csv={csv}", f"data.val_csv={csv}", f"data.test_csv={csv}")
+    cfg = compose_config("data=csv", f"data.train_csv={csv}", f"data.val_csv={csv}", f"data.test_csv={csv}")
     dm = instantiate(cfg.data)
     dm.setup("fit")
     item = dm.datasets["val"][1]
     torch.testing.assert_close(item["pose"], torch.tensor([0.5, 4.0, -40.0, 1.0]))
-    cfg = compose_data("data=csv")
+    cfg = compose_config("data=csv")
     with pytest.raises(DataError, match="needs data.train_csv"):
         instantiate(cfg.data).setup("fit")
 

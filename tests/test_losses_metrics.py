@@ -1,12 +1,10 @@
 """Losses (against the classical estimator's own surfaces) and the paper's metrics."""
 
 import math
-from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
-from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 from torch.autograd import gradcheck
 
@@ -22,7 +20,7 @@ from dpcn.training.losses import (
     translation_target,
 )
 
-from .conftest import cv2_warp, photo
+from .conftest import compose_config, cv2_warp, photo
 
 TRUTH = (13.0, -21.0, 37.0, 1.12)
 
@@ -129,8 +127,6 @@ def test_summarize_matches_hand_counts(tmp_path):
 )
 def test_loss_configs_take_per_term_overrides(choice, expected):
     """Every loss config composes from the real conf/ with per-term weight overrides (no ``+``)."""
-    conf = Path(__file__).resolve().parents[1] / "conf"
-    with initialize_config_dir(config_dir=str(conf), version_base="1.3"):
-        cfg = compose("config", overrides=[f"loss={choice}", "loss.l1_rotation=0.1", "loss.kl_translation=3"])
+    cfg = compose_config(f"loss={choice}", "loss.l1_rotation=0.1", "loss.kl_translation=3")
     loss = DPCNLoss(**instantiate(cfg.loss))
     assert loss.weights == pytest.approx(expected)

@@ -14,7 +14,7 @@ import torch
 from dpcn.pose import Pose
 from dpcn.training.module import DPCNModule, load_matcher
 
-REPO = Path(__file__).resolve().parents[1]
+from .conftest import compose_config
 
 # A DPCN small enough to train a few steps in seconds on a CPU.
 SMALL = [
@@ -87,7 +87,6 @@ def test_checkpoint_reloads_without_configs(trained):
 def _crashing_run(run_dir: Path, crash_after_step: int, *extra: str) -> None:
     """Train in this process with the real configs and trainer, crashing after a given step."""
     import lightning as L
-    from hydra import compose, initialize_config_dir
     from hydra.utils import instantiate
 
     from dpcn import cli
@@ -97,8 +96,7 @@ def _crashing_run(run_dir: Path, crash_after_step: int, *extra: str) -> None:
             if trainer.global_step == crash_after_step:
                 raise RuntimeError("simulated crash")
 
-    with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
-        cfg = compose("config", overrides=[*SMALL, *extra])
+    cfg = compose_config(*SMALL, *extra)
     L.seed_everything(cfg.seed, workers=True)
     module = instantiate(cfg.model, _convert_="all")
     datamodule = instantiate(cfg.data)
@@ -224,11 +222,9 @@ def test_ddp_with_two_cpu_processes(tmp_path):
 
 @pytest.mark.parametrize(("preset", "downsample", "width", "depth"), [("tiny", 2, 8, 4), ("tiny_full", 1, 4, 3)])
 def test_model_presets_compose_and_build(preset, downsample, width, depth):
-    from hydra import compose, initialize_config_dir
     from hydra.utils import instantiate
 
-    with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
-        cfg = compose("config", overrides=[f"model={preset}"])
+    cfg = compose_config(f"model={preset}")
     module = instantiate(cfg.model, _convert_="all")
     net = module.model
     assert net.rotation_scale_downsample == downsample
@@ -249,10 +245,7 @@ def test_model_presets_compose_and_build(preset, downsample, width, depth):
     ],
 )
 def test_map_pairs_default_to_tiny_full_unless_a_model_is_named(overrides, model):
-    from hydra import compose, initialize_config_dir
-
-    with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
-        cfg = compose("config", overrides=overrides, return_hydra_config=True)
+    cfg = compose_config(*overrides, return_hydra_config=True)
     assert cfg.hydra.runtime.choices.model == model
     data = next(o for o in overrides if o.startswith("data=")).removeprefix("data=")
     assert cfg.data.name == data
