@@ -6,11 +6,13 @@ the median of several timed rounds after a warm-up. Weights are random unless --
 the cost does not depend on them.
 
     python benchmarks/bench_inference.py [--device cpu|cuda] [--threads 2] [--batch 32] [--ckpt last.ckpt]
+        [--hypotheses 1,3]   # also time other numbers of phase-1 peaks checked by phase 2
 """
 
 from __future__ import annotations
 
 import argparse
+import copy
 import statistics
 import time
 from pathlib import Path
@@ -34,6 +36,7 @@ ARCHITECTURE = (
     "rotation_scale_depth",
     "n_angles",
     "n_radii",
+    "rotation_hypotheses",
 )
 
 
@@ -68,6 +71,9 @@ def main() -> None:
     parser.add_argument("--rounds", type=int, default=10)
     parser.add_argument("--presets", default="tiny,paper")
     parser.add_argument("--ckpt", default=None, help="time this checkpoint instead of randomly initialised presets")
+    parser.add_argument(
+        "--hypotheses", default=None, help="comma-separated rotation_hypotheses to time (default: the preset's)"
+    )
     parser.add_argument("--bf16", action="store_true", help="autocast the U-Nets to bfloat16 (GPU)")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
@@ -83,6 +89,12 @@ def main() -> None:
     else:
         for name in args.presets.split(","):
             models[f"DPCN {name}"] = DPCN(image_size=(args.size, args.size), **preset(name))
+    if args.hypotheses:
+        for label, model in [(k, m) for k, m in models.items()]:
+            del models[label]
+            for k in (int(v) for v in args.hypotheses.split(",")):
+                models[f"{label}, K={k}"] = copy.deepcopy(model)
+                models[f"{label}, K={k}"].rotation_hypotheses = k
     models["classical (no U-Nets)"] = PhaseCorrelationEstimator()
 
     generator = torch.Generator().manual_seed(0)

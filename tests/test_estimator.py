@@ -188,3 +188,60 @@ def test_gradcheck_whole_estimator():
     a, b = _small_images()
     est = PhaseCorrelationEstimator(n_angles=16, n_radii=12, window=2)
     assert gradcheck(lambda x, y: est(x, y).as_tensor(), (a, b), eps=1e-6, atol=1e-4)
+
+
+def test_rotation_scale_hypotheses_start_with_the_single_estimate():
+    # A brick wall: its periodic spectrum gives several strong log-polar peaks.
+    image = photo("brick", (128, 128))
+    pairs = [cv2_warp(image, 3.0, -2.0, angle, 1.05) for angle in (25.0, -70.0)]
+    t = torch.from_numpy(np.stack([image, image]))[:, None]
+    s = torch.from_numpy(np.stack(pairs))[:, None]
+    one = estimate_rotation_scale(t, s, window=3)
+    many = estimate_rotation_scale(t, s, window=3, hypotheses=4)
+    assert many.candidate_angle.shape == many.candidate_scale.shape == many.candidate_score.shape == (2, 4)
+    assert one.candidate_angle.shape == (2, 1)
+    torch.testing.assert_close(many.angle, one.angle)
+    torch.testing.assert_close(many.scale, one.scale)
+    torch.testing.assert_close(many.candidate_angle[:, 0], one.angle)
+    assert (many.candidate_score[:, :-1] >= many.candidate_score[:, 1:]).all()
+    assert ((many.candidate_angle >= -90) & (many.candidate_angle < 90)).all()
+    assert angle_error(many.angle[0], 25.0) < 0.5 and angle_error(many.angle[1], -70.0) < 0.5
+    # the hypotheses are distinct peaks, not neighbours of the first
+    spread = (many.candidate_angle[:, 1:] - many.candidate_angle[:, :1]).abs()
+    log_scale = (many.candidate_scale[:, 1:].log() - many.candidate_scale[:, :1].log()).abs()
+    assert ((spread > 1.0) | (log_scale > 0.01)).all()
+    with pytest.raises(ValueError, match="hypotheses must be an integer"):
+        estimate_rotation_scale(t, s, hypotheses=0)
+    with pytest.raises(ValueError, match="need a soft-argmax window"):
+        estimate_rotation_scale(t, s, window=None, hypotheses=2)
+
+
+def test_source_window_shifts_keep_the_best_correlation_per_bin():
+    image = photo("camera", (96, 96))
+    t = torch.from_numpy(image)[None, None].double()
+    s = torch.from_numpy(cv2_warp(image, 20.0, -14.0, 30.0, 1.1))[None, None].double()
+    shifts = [(0, 0), (12, 0), (0, -12), (-12, 12)]
+    kw = dict(window=3)
+    many = estimate_rotation_scale(t, s, source_shifts=shifts, **kw)
+    # the reference: each shifted source on its own, then the element-wise maximum
+    each = [estimate_rotation_scale(t, torch.roll(s, shift, dims=(-2, -1)), **kw) for shift in shifts]
+    torch.testing.assert_close(many.surface, torch.stack([r.surface for r in each]).amax(dim=0))
+    torch.testing.assert_close(many.log_polar_source, each[0].log_polar_source)  # the centred source
+    assert (many.surface >= each[0].surface - 1e-12).all()
+    assert angle_error(many.angle, 30.0) < 0.5 and abs(float(many.scale) - 1.1) < 0.01
+    # (0, 0) alone, or no shifts, is the plain estimate
+    plain = estimate_rotation_scale(t, s, **kw)
+    torch.testing.assert_close(estimate_rotation_scale(t, s, source_shifts=[(0, 0)], **kw).surface, plain.surface)
+
+
+def test_gradcheck_rotation_scale_stage_with_window_shifts():
+    a, b = _small_images()
+    fn = lambda x, y: torch.stack(  # noqa: E731
+        [
+            (
+                r := estimate_rotation_scale(x, y, n_angles=16, n_radii=12, window=2, source_shifts=[(3, 0), (0, -3)])
+            ).angle,
+            r.scale,
+        ]
+    )
+    assert gradcheck(fn, (a, b), eps=1e-6, atol=1e-4)

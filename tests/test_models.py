@@ -5,6 +5,7 @@ import pytest
 import torch
 from torch.autograd import gradcheck
 
+from dpcn.estimator import unwarp_rotation_scale
 from dpcn.models import DPCN, UNet, half_turn
 
 from .conftest import angle_error, cv2_warp, photo
@@ -180,3 +181,79 @@ def test_gradcheck_end_to_end_with_phase1_at_half_resolution():
     t = torch.rand(1, 1, 16, 16, dtype=torch.float64, requires_grad=True)
     s = torch.rand(1, 1, 16, 16, dtype=torch.float64, requires_grad=True)
     assert gradcheck(lambda a, b: model(a, b).pose.as_tensor(), (t, s), eps=1e-6, atol=1e-4)
+
+
+def test_phase2_picks_the_rotation_hypothesis_with_a_translation_peak():
+    # With input_skip an untrained DPCN is phase correlation on (softplus) images; of three
+    # un-warp candidates only the true rotation leaves a translation peak, in any order.
+    torch.manual_seed(0)
+    image = photo("camera", (128, 128))
+    source = torch.from_numpy(cv2_warp(image, 6.0, -4.0, 35.0, 1.1))[None, None]
+    template = torch.from_numpy(image)[None, None]
+    model = DPCN(base_channels=2, depth=1, input_skip=True, image_size=(128, 128)).eval()
+    for order in ([-20.0, 35.0, 80.0], [35.0 + 180.0, 10.0, -60.0], [70.0, -45.0, 35.0]):
+        angle, scale = torch.tensor(order), torch.full((3,), 1.1)
+        unwarped = unwarp_rotation_scale(source.repeat(3, 1, 1, 1), angle, scale)
+        with torch.no_grad():
+            tr, features, choice = model.translation(template, unwarped, angle, scale)
+        true_index = next(i for i, a in enumerate(order) if a % 360.0 == 35.0 or a % 360.0 == 215.0)
+        assert int(choice) == true_index
+        assert angle_error(tr.angle, 35.0) < 1e-4  # a candidate off by a half-turn is turned back
+        assert abs(float(tr.tx) - 6.0) < 1.0 and abs(float(tr.ty) + 4.0) < 1.0
+        assert features["t_source"].shape == (1, 1, 128, 128) and features["t_template"].shape == (1, 1, 128, 128)
+        # a candidate ruled out by `valid` cannot win
+        valid = torch.ones(1, 3, dtype=torch.bool)
+        valid[0, true_index] = False
+        assert int(model.translation(template, unwarped, angle, scale, valid=valid)[2]) != true_index
+    with pytest.raises(ValueError, match="need B \\* K"):
+        model.translation(template.repeat(2, 1, 1, 1), unwarped, angle, scale)
+
+
+def test_rotation_hypotheses_keep_a_right_first_peak_and_are_validated():
+    torch.manual_seed(0)
+    image = photo("astronaut", (128, 128))
+    sources = [cv2_warp(image, 6.0, -4.0, angle, 1.1) for angle in (35.0, -150.0)]
+    t = torch.from_numpy(np.stack([image, image]))[:, None]
+    s = torch.from_numpy(np.stack(sources))[:, None]
+    model = DPCN(base_channels=2, depth=1, input_skip=True, image_size=(128, 128)).eval()
+    one = model.match(t, s)
+    model.rotation_hypotheses = 3
+    with torch.no_grad():
+        out = model(t, s)
+    assert out.rotation_scale.candidate_angle.shape == (2, 3)
+    assert out.unwarped_source.shape == s.shape
+    torch.testing.assert_close(out.pose.as_tensor(), one.as_tensor())
+    assert angle_error(out.pose.angle[1], -150.0) < 0.5
+    for bad in (0, 1.5, True, "3"):
+        with pytest.raises(ValueError, match="rotation_hypotheses must be an integer >= 1"):
+            model.rotation_hypotheses = bad
+    with pytest.raises(ValueError, match="rotation_hypotheses"):
+        small_dpcn(rotation_hypotheses=0)
+
+
+def test_spectrum_window_grid_shifts_and_validation():
+    model = DPCN(base_channels=2, depth=1, image_size=(128, 128), rotation_scale_downsample=2)
+    assert model.spectrum_window_shifts(64, 64, 1) == [(0, 0)]
+    shifts = model.spectrum_window_shifts(64, 64, 3)  # 1/8 of the side: 8 px on 64 x 64 features
+    assert shifts[0] == (0, 0) and len(set(shifts)) == 9
+    assert {abs(v) for shift in shifts for v in shift} == {0, 8}
+    assert len(model.spectrum_window_shifts(64, 48, 5)) == 25 and (-16, -12) in model.spectrum_window_shifts(64, 48, 5)
+    for bad in (0, 2, 1.0, True):
+        with pytest.raises(ValueError, match="spectrum_window_grid must be an odd integer >= 1"):
+            model.spectrum_window_grid = bad
+    with pytest.raises(ValueError, match="spectrum_window_step"):
+        small_dpcn(spectrum_window_step=0.6)
+
+
+def test_spectrum_window_grid_recovers_an_opencv_pose_with_a_large_shift():
+    torch.manual_seed(0)
+    image = photo("astronaut", (128, 128))
+    source = torch.from_numpy(cv2_warp(image, 24.0, -20.0, -120.0, 0.9))[None, None]
+    model = DPCN(base_channels=2, depth=1, input_skip=True, image_size=(128, 128), spectrum_window_grid=3).eval()
+    model.rotation_hypotheses = 2
+    with torch.no_grad():
+        out = model(torch.from_numpy(image)[None, None], source)
+        centred = model.rotation_scale(torch.from_numpy(image)[None, None], source)[0]
+    assert (out.rotation_scale.surface >= centred.surface - 1e-6).all()  # the centred window is one of them
+    assert angle_error(out.pose.angle, -120.0) < 0.5 and abs(float(out.pose.scale) - 0.9) < 0.01
+    assert abs(float(out.pose.tx) - 24.0) < 1.0 and abs(float(out.pose.ty) + 20.0) < 1.0

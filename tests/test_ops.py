@@ -13,6 +13,7 @@ from dpcn.ops import (
     SoftArgmax2d,
     apodization_window,
     highpass_filter,
+    local_maxima2d,
     log_polar,
     log_polar_grid,
     log_radius_step,
@@ -260,4 +261,72 @@ class TestSoftArgmax:
         temperature = torch.tensor(0.3, dtype=torch.float64, requires_grad=True)
         assert gradcheck(
             lambda s, t: soft_argmax2d(s, t, window=window, circular=(True, False)), (surface, temperature)
+        )
+
+
+class TestLocalMaxima:
+    def test_peaks_in_order_and_apart(self):
+        surface = 0.2 * gaussian_blob(32, 40, 5.0, 6.0) + 0.5 * gaussian_blob(32, 40, 20.0, 30.0)
+        surface = (surface + 0.3 * gaussian_blob(32, 40, 6.0, 8.0))[None]  # a shoulder of the first peak
+        values, indices = local_maxima2d(surface, 3, radius=4)
+        assert values.shape == (1, 3) and indices.shape == (1, 3, 2)
+        assert not indices.dtype.is_floating_point
+        assert (values[0, :-1] >= values[0, 1:]).all()
+        assert indices[0, 0].tolist() == [20, 30]
+        # the two bumps 1 row and 2 columns apart make one peak (between them, nearer the taller)
+        assert (indices[0, 1] - torch.tensor([6, 8])).abs().max() <= 1
+        for a in range(3):
+            for b in range(a):
+                assert (indices[0, a] - indices[0, b]).abs().max() > 4
+        torch.testing.assert_close(values[0], surface[0, indices[0, :, 0], indices[0, :, 1]])
+
+    def test_circular_rows_suppress_across_the_seam(self):
+        surface = torch.zeros(1, 16, 8)
+        surface[0, 0, 3], surface[0, 15, 3], surface[0, 8, 3] = 1.0, 0.9, 0.5
+        _, flat = local_maxima2d(surface, 2, radius=1)
+        assert flat[0, 1].tolist() == [15, 3]
+        _, wrapped = local_maxima2d(surface, 2, radius=1, circular=(True, False))
+        assert wrapped[0, 1].tolist() == [8, 3]
+
+    def test_batched_and_exhausted(self):
+        surfaces = torch.stack([gaussian_blob(9, 9, 2.0, 2.0), gaussian_blob(9, 9, 6.0, 5.0)])
+        values, indices = local_maxima2d(surfaces, 2, radius=8)
+        assert indices[:, 0].tolist() == [[2, 2], [6, 5]]
+        assert torch.isinf(values[:, 1]).all() and (values[:, 1] < 0).all()  # one peak per surface
+
+    def test_refine_a_secondary_peak(self):
+        surface = (0.5 * gaussian_blob(32, 40, 10.3, 20.7) + 0.3 * gaussian_blob(32, 40, 24.6, 7.2))[None]
+        _, indices = local_maxima2d(surface, 2)
+        peak = soft_argmax2d(surface, 0.1, window=3, relative=True, peak=indices[:, 1])[0]
+        assert float(peak[0]) == pytest.approx(24.6, abs=0.02) and float(peak[1]) == pytest.approx(7.2, abs=0.02)
+        # the default (hard arg-max) and the first peak are the same
+        torch.testing.assert_close(
+            soft_argmax2d(surface, 0.1, window=3, relative=True, peak=indices[:, 0]),
+            soft_argmax2d(surface, 0.1, window=3, relative=True),
+        )
+
+    def test_errors(self):
+        with pytest.raises(ValueError, match="k must be an integer"):
+            local_maxima2d(torch.rand(1, 4, 4), 0)
+        with pytest.raises(ValueError, match="k must be an integer"):
+            local_maxima2d(torch.rand(1, 4, 4), 17)
+        with pytest.raises(ValueError, match="radius"):
+            local_maxima2d(torch.rand(1, 4, 4), 2, radius=-1)
+        with pytest.raises(ValueError, match=r"\(B, H, W\)"):
+            local_maxima2d(torch.rand(4, 4), 1)
+        with pytest.raises(ValueError, match="needs a window"):
+            soft_argmax2d(torch.rand(1, 4, 4), peak=torch.zeros(1, 2, dtype=torch.long))
+        with pytest.raises(ValueError, match=r"\(B, 2\) integer"):
+            soft_argmax2d(torch.rand(2, 4, 4), window=1, peak=torch.zeros(2, 2))
+        with pytest.raises(ValueError, match=r"\(B, 2\) integer"):
+            soft_argmax2d(torch.rand(2, 4, 4), window=1, peak=torch.zeros(1, 2, dtype=torch.long))
+
+    def test_gradcheck_refined_secondary_peak(self):
+        surface = (0.5 * gaussian_blob(9, 10, 2.2, 2.6) + 0.3 * gaussian_blob(9, 10, 6.4, 7.3))[None]
+        surface = (surface + 0.02 * f64(1, 9, 10)).requires_grad_()
+        _, indices = local_maxima2d(surface, 2, radius=2, circular=(True, False))
+        temperature = torch.tensor(0.3, dtype=torch.float64, requires_grad=True)
+        assert gradcheck(
+            lambda s, t: soft_argmax2d(s, t, window=1, circular=(True, False), relative=True, peak=indices[:, 1]),
+            (surface, temperature),
         )

@@ -145,6 +145,26 @@ def test_validate_and_test_print_the_paper_table(trained, tmp_path):
     assert "acc_x@5" in out.stdout and "acc_rot@0.5" in out.stdout
     rows = list(csv.DictReader((tmp_path / "t" / "metrics_test.csv").open()))
     assert rows[0]["n"] == "4.0" and 0.0 <= float(rows[0]["acc_scale@0.2"]) <= 100.0
+    out = dpcn(
+        "test", *SMALL, f"ckpt_path={ckpt}", "rotation_hypotheses=3", f"hydra.run.dir={tmp_path / 'k'}", cwd=tmp_path
+    )
+    assert "acc_rot@1" in out.stdout and (tmp_path / "k" / "metrics_test.csv").is_file()
+    assert load_matcher(ckpt, rotation_hypotheses=3).model.rotation_hypotheses == 3
+    assert (
+        load_matcher(ckpt).model.rotation_hypotheses
+        == DPCNModule(**torch.load(ckpt)["hyper_parameters"]).model.rotation_hypotheses
+    )
+    bad = dpcn(
+        "test",
+        *SMALL,
+        f"ckpt_path={ckpt}",
+        "rotation_hypotheses=0",
+        f"hydra.run.dir={tmp_path / 'b'}",
+        cwd=tmp_path,
+        check=False,
+    )
+    assert bad.returncode == 2 and "rotation_hypotheses must be an integer >= 1, got 0" in bad.stderr
+    assert "Traceback" not in bad.stderr
     out = dpcn("validate", *SMALL_DATA, "model=classical", f"hydra.run.dir={tmp_path / 'v'}", cwd=tmp_path)
     assert "classical on sim_heterogeneous" in out.stdout
     assert (tmp_path / "v" / "metrics_validate.csv").is_file()

@@ -76,7 +76,7 @@ def run_predict(cfg: DictConfig) -> None:
     if cfg.ckpt_path:
         from .training.module import load_matcher
 
-        matcher = load_matcher(cfg.ckpt_path, map_location=device)
+        matcher = load_matcher(cfg.ckpt_path, device, cfg.rotation_hypotheses, cfg.spectrum_window_grid)
         t, s = prepare_pair(template, source, device)
         pose = matcher.match(t, s)
     else:
@@ -194,7 +194,7 @@ def _run_evaluation(cfg: DictConfig, stage: str) -> None:
     datamodule = instantiate(cfg.data)
     ckpt = _check_ckpt(cfg.ckpt_path)
     if ckpt is not None:
-        module = load_matcher(ckpt)
+        module = load_matcher(ckpt, "cpu", cfg.rotation_hypotheses, cfg.spectrum_window_grid)
         module.translation_threshold = float(cfg.data.translation_threshold)
         name = f"DPCN {ckpt.name}"
     else:

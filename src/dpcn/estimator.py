@@ -12,6 +12,7 @@ classical estimator, :class:`PhaseCorrelationEstimator`) and on learned feature 
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import kornia
@@ -19,9 +20,9 @@ import torch
 from torch import Tensor, nn
 
 from .ops._checks import check_pair, full_precision, inputs_checked
-from .ops.correlation import correlation_surface, cross_power_spectrum
+from .ops.correlation import correlation_surface
 from .ops.logpolar import log_polar, log_polar_grid, log_radius_step
-from .ops.soft_argmax import soft_argmax2d
+from .ops.soft_argmax import local_maxima2d, soft_argmax2d
 from .ops.spectrum import apodization_window, magnitude_spectrum
 from .pose import Pose, pose_to_matrix, wrap_angle
 
@@ -41,6 +42,9 @@ class RotationScale:
 
     ``angle`` is in ``[-90, 90)`` degrees: the magnitude spectrum cannot tell ``angle`` from
     ``angle + 180``. ``surface`` is the ``(B, n_angles, n_radii)`` log-polar correlation.
+    ``candidate_angle``, ``candidate_scale``, ``candidate_score`` are ``(B, K)``: the ``K``
+    highest separate peaks of the surface (``hypotheses``), strongest first; the first is
+    ``angle``/``scale`` (a score of ``-inf`` marks a missing peak).
     """
 
     angle: Tensor
@@ -49,6 +53,9 @@ class RotationScale:
     surface: Tensor
     log_polar_template: Tensor
     log_polar_source: Tensor
+    candidate_angle: Tensor
+    candidate_scale: Tensor
+    candidate_score: Tensor
 
 
 @dataclass
@@ -94,6 +101,8 @@ def estimate_rotation_scale(
     window: int | None = 3,
     scale_range: tuple[float, float] | None = (0.5, 2.0),
     relative: bool = True,
+    hypotheses: int = 1,
+    source_shifts: Sequence[tuple[int, int]] = (),
 ) -> RotationScale:
     """Rotation (mod 180 degrees) and scale of ``source`` relative to ``template``.
 
@@ -105,29 +114,59 @@ def estimate_rotation_scale(
         sigma, temperature, window, relative: correlation blur and soft-argmax settings
             (:func:`dpcn.ops.phase_correlation`, :func:`dpcn.ops.soft_argmax2d`).
         scale_range: only scales in this range are searched (``None``: all).
+        hypotheses: also locate the next strongest peaks, ``hypotheses`` in all, at least
+            ``max(window, 4)`` bins from each other (``candidate_*`` fields), for a later stage to
+            choose from.
+        source_shifts: integer ``(rows, cols)`` circular shifts of the source: each gives one
+            more source spectrum, under a window centred elsewhere in the source, and the
+            surface is the element-wise maximum over all windows (the centred one included).
+            A translated source shares only part of its centred window's content with the
+            template; a window nearer the translated centre shares more (the template's
+            spectrum is computed once).
 
     Returns:
         :class:`RotationScale` with ``angle`` in ``[-90, 90)`` degrees and ``scale``.
     """
     check_pair(template, source)
-    # Both spectra in one batch: half spectra (point symmetry) sampled on angles [-90, 90).
-    spectra = magnitude_spectrum(torch.cat([template, source]), window=True, highpass=highpass, half=True)
+    shifts = [tuple(int(v) for v in shift) for shift in source_shifts if tuple(shift) != (0, 0)]
+    sources = [source] + [torch.roll(source, shift, dims=(-2, -1)) for shift in shifts]
+    # All spectra in one batch: half spectra (point symmetry) sampled on angles [-90, 90).
+    spectra = magnitude_spectrum(torch.cat([template, *sources]), window=True, highpass=highpass, half=True)
     maps = log_polar(spectra, n_angles, n_radii, min_radius, max_radius, half=True, width=template.shape[-1])
-    lp_t, lp_s = maps.chunk(2)
-    cross = cross_power_spectrum(lp_t, lp_s)
+    batch = len(template)
+    lp_t, lp_all = maps[:batch], maps[batch:]
+    lp_s = lp_all[:batch]
+    # cross_power_spectrum for every source window against the template's one DFT
+    fa, fb = torch.fft.rfft2(lp_t), torch.fft.rfft2(lp_all).view(len(sources), *lp_t.shape[:-1], -1)
+    cross = (fb * fa.conj()).sum(dim=2).flatten(0, 1)
     surface = correlation_surface(cross, (n_angles, n_radii), sigma=sigma)
+    if shifts:
+        surface = surface.view(len(sources), batch, n_angles, n_radii).amax(dim=0)
     step = log_radius_step(n_radii, min_radius, max_radius)
     mask = _scale_mask(n_radii, step, scale_range, surface.device, surface.dtype)
     scored = surface if mask is None else surface + mask
-    peak = soft_argmax2d(scored, temperature, window=window, circular=(True, False), relative=relative)
+    circular = (True, False)
+    if hypotheses == 1:
+        peak = soft_argmax2d(scored, temperature, window=window, circular=circular, relative=relative)[:, None]
+        score = scored.flatten(1).max(dim=1).values[:, None]
+    else:
+        if not isinstance(hypotheses, int) or hypotheses < 1:
+            raise ValueError(f"hypotheses must be an integer >= 1, got {hypotheses!r}")
+        if window is None:
+            raise ValueError("several rotation/scale hypotheses need a soft-argmax window")
+        score, indices = local_maxima2d(scored, hypotheses, radius=max(window, 4), circular=circular)
+        repeated = scored.repeat_interleave(hypotheses, dim=0)
+        peak = soft_argmax2d(
+            repeated, temperature, window=window, circular=circular, relative=relative, peak=indices.flatten(0, 1)
+        ).view(-1, hypotheses, 2)
     # A rotation by +a shifts the source's log-polar map by -a rows; a scale s by -ln(s) columns.
-    d_angle = peak[:, 0] - n_angles // 2
-    d_radius = peak[:, 1] - n_radii // 2
+    d_angle = peak[..., 0] - n_angles // 2
+    d_radius = peak[..., 1] - n_radii // 2
     angle = wrap_angle(-d_angle * (180.0 / n_angles), period=180.0)
     angle = torch.where(angle >= 90.0, angle - 180.0, angle)  # [-90, 90)
     scale = torch.exp(-d_radius * step)
-    confidence = scored.flatten(1).max(dim=1).values.clamp(0.0, 1.0)
-    return RotationScale(angle, scale, confidence, surface, lp_t, lp_s)
+    confidence = score[:, 0].clamp(0.0, 1.0)
+    return RotationScale(angle[:, 0], scale[:, 0], confidence, surface, lp_t, lp_s, angle, scale, score)
 
 
 @full_precision

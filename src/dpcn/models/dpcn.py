@@ -8,7 +8,13 @@ kornia warp. Phase 2 (translation): U-Nets ``g1``/``g2`` -> phase correlation ->
 The half-turn left open by phase 1 is settled in phase 2: the translation features are
 computed for the un-warped source and for its half-turn, and the stronger peak wins. (The
 conjugate-spectrum shortcut of the classical estimator does not apply here: a U-Net is not
-equivariant to half-turns.)
+equivariant to half-turns.) With ``rotation_hypotheses = K > 1`` phase 2 checks the ``K``
+strongest phase-1 peaks the same way: a wrong rotation leaves no translation peak, so the
+strongest translation peak over the ``2 K`` candidates picks the pose. With
+``spectrum_window_grid = n > 1`` phase 1 also takes the source's spectrum under an ``n x n``
+grid of shifted windows and keeps the best correlation per log-polar bin: a translated
+source shares more content with the template under a window near its translated centre.
+Both are inference settings; training uses one centred window and one hypothesis.
 """
 
 from __future__ import annotations
@@ -78,6 +84,14 @@ class DPCN(nn.Module):
             are in ``[-1, 1]``.
         learnable_temperature: learn the two training temperatures.
         scale_range: scales searched in phase 1.
+        rotation_hypotheses: phase-1 peaks (rotation/scale hypotheses) that phase 2 checks at
+            inference; each costs one more pair of phase-2 source U-Net passes. Training is
+            unaffected (phase 1 learns from its own surface).
+        spectrum_window_grid, spectrum_window_step: at inference, phase 1 also correlates the
+            template's spectrum with the source's under an ``n x n`` grid of windows shifted by
+            multiples of ``spectrum_window_step`` (a fraction of the image side), the best per
+            bin counting (see :func:`~dpcn.estimator.estimate_rotation_scale`); ``n`` odd,
+            ``1``: the centred window only.
     """
 
     def __init__(
@@ -106,6 +120,9 @@ class DPCN(nn.Module):
         train_temperature: tuple[float, float] | list[float] | float = (0.02, 0.02),
         learnable_temperature: bool = True,
         scale_range: tuple[float, float] | list[float] | None = (0.5, 2.0),
+        rotation_hypotheses: int = 1,
+        spectrum_window_grid: int = 1,
+        spectrum_window_step: float = 0.125,
     ) -> None:
         super().__init__()
         log_polar_grid(8, 8, n_angles, n_radii, min_radius, max_radius)  # validates the grid
@@ -130,6 +147,13 @@ class DPCN(nn.Module):
         self.temperature, self.rotation_temperature = temperature, rotation_temperature
         self.window = window
         self.scale_range = None if scale_range is None else (float(scale_range[0]), float(scale_range[1]))
+        self.rotation_hypotheses = rotation_hypotheses
+        self.spectrum_window_grid = spectrum_window_grid
+        if not 0.0 < spectrum_window_step < 0.5:
+            raise ValueError(
+                f"spectrum_window_step must be in (0, 0.5) of the image side, got {spectrum_window_step!r}"
+            )
+        self.spectrum_window_step = float(spectrum_window_step)
         if isinstance(train_temperature, (int, float)):
             train_temperature = (train_temperature, train_temperature)
         if min(train_temperature) <= 0:
@@ -141,6 +165,35 @@ class DPCN(nn.Module):
             self.register_buffer("log_train_temperature", log_t)
 
     # ------------------------------------------------------------------ helpers
+    @property
+    def rotation_hypotheses(self) -> int:
+        """Phase-1 peaks checked by phase 2 at inference (settable on a loaded model)."""
+        return self._rotation_hypotheses
+
+    @rotation_hypotheses.setter
+    def rotation_hypotheses(self, value: int) -> None:
+        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+            raise ValueError(f"rotation_hypotheses must be an integer >= 1, got {value!r}")
+        self._rotation_hypotheses = value
+
+    @property
+    def spectrum_window_grid(self) -> int:
+        """Side of the grid of source spectrum windows phase 1 uses at inference (settable)."""
+        return self._spectrum_window_grid
+
+    @spectrum_window_grid.setter
+    def spectrum_window_grid(self, value: int) -> None:
+        if isinstance(value, bool) or not isinstance(value, int) or value < 1 or value % 2 == 0:
+            raise ValueError(f"spectrum_window_grid must be an odd integer >= 1, got {value!r}")
+        self._spectrum_window_grid = value
+
+    def spectrum_window_shifts(self, height: int, width: int, grid: int) -> list[tuple[int, int]]:
+        """Circular shifts ``(rows, cols)`` of a ``height x width`` map for a ``grid x grid``
+        set of windows (``(0, 0)`` first)."""
+        dy, dx = round(self.spectrum_window_step * height), round(self.spectrum_window_step * width)
+        steps = sorted(range(-(grid // 2), grid // 2 + 1), key=abs)
+        return [(i * dy, j * dx) for i in steps for j in steps]
+
     @property
     def radius_step(self) -> float:
         """ln-scale per log-polar column."""
@@ -168,8 +221,12 @@ class DPCN(nn.Module):
         d = self.rotation_scale_downsample
         return F.avg_pool2d(image, d, ceil_mode=True) if d > 1 else image
 
-    def rotation_scale(self, template: Tensor, source: Tensor) -> tuple[RotationScale, dict[str, Tensor]]:
-        """Phase 1: features, then rotation (mod 180 degrees) and scale.
+    def rotation_scale(
+        self, template: Tensor, source: Tensor, hypotheses: int = 1, window_grid: int = 1
+    ) -> tuple[RotationScale, dict[str, Tensor]]:
+        """Phase 1: features, then rotation (mod 180 degrees) and scale (and the next
+        strongest peaks, ``hypotheses`` in all, as ``candidate_*``), with the source spectrum
+        under a ``window_grid x window_grid`` grid of windows.
 
         The features are ``(B, C, H / d, W / d)`` with ``d = rotation_scale_downsample``.
         """
@@ -177,9 +234,12 @@ class DPCN(nn.Module):
             "rs_template": self.rs_template(self.rotation_scale_input(template)),
             "rs_source": self.rs_source(self.rotation_scale_input(source)),
         }
-        return self.rotation_scale_from_features(features["rs_template"], features["rs_source"]), features
+        rs = self.rotation_scale_from_features(features["rs_template"], features["rs_source"], hypotheses, window_grid)
+        return rs, features
 
-    def rotation_scale_from_features(self, template_features: Tensor, source_features: Tensor) -> RotationScale:
+    def rotation_scale_from_features(
+        self, template_features: Tensor, source_features: Tensor, hypotheses: int = 1, window_grid: int = 1
+    ) -> RotationScale:
         """Phase 1's estimate from ``(B, C, h, w)`` feature maps, with this model's log-polar
         and peak settings (also for maps from elsewhere, e.g. to compare extractors)."""
         return estimate_rotation_scale(
@@ -194,47 +254,85 @@ class DPCN(nn.Module):
             temperature=self.rotation_temperature,
             window=self.window,
             scale_range=self.scale_range,
+            hypotheses=hypotheses,
+            source_shifts=self.spectrum_window_shifts(*source_features.shape[-2:], window_grid),
         )
 
     def translation(
-        self, template: Tensor, unwarped_source: Tensor, angle: Tensor, scale: Tensor, resolve_180: bool = True
-    ) -> tuple[Translation, dict[str, Tensor]]:
-        """Phase 2 on a source already un-warped by ``angle``/``scale``.
+        self,
+        template: Tensor,
+        unwarped_source: Tensor,
+        angle: Tensor,
+        scale: Tensor,
+        resolve_180: bool = True,
+        valid: Tensor | None = None,
+    ) -> tuple[Translation, dict[str, Tensor], Tensor]:
+        """Phase 2 on sources already un-warped by ``angle``/``scale``; the strongest
+        translation peak over the candidates wins.
 
-        With ``resolve_180`` the half-turned source is tried too (one more source U-Net
-        pass, batched with the first) and the stronger peak decides the angle.
+        Args:
+            template: ``(B, C, H, W)``.
+            unwarped_source, angle, scale: ``K`` candidates per pair, pair-major:
+                ``(B * K, C, H, W)``, ``(B * K,)``, ``(B * K,)`` (``K = 1``: one un-warp each).
+            resolve_180: also try each candidate turned by half a turn (one more source U-Net
+                pass, batched with the first); the angle of the winner says which.
+            valid: ``(B, K)`` candidates allowed to win (``None``: all).
+
+        Returns:
+            the winning :class:`Translation` ``(B,)``, the phase-2 features of the winner, and
+            ``(B,)`` the index of the winning candidate.
         """
         batch = template.shape[0]
+        k = unwarped_source.shape[0] // batch
+        if k < 1 or unwarped_source.shape[0] != batch * k:
+            raise ValueError(f"{unwarped_source.shape[0]} un-warped sources for {batch} templates (need B * K)")
         ft = self.t_template(template)
-        if resolve_180:
-            fs_both = self.t_source(torch.cat([unwarped_source, half_turn(unwarped_source)]))
-            fs, fs_turned = fs_both[:batch], fs_both[batch:]
-        else:
-            fs = self.t_source(unwarped_source)
+        turns = (unwarped_source, half_turn(unwarped_source)) if resolve_180 else (unwarped_source,)
+        fs_all = self.t_source(torch.cat(turns)).chunk(len(turns))
+        ft_k = ft.repeat_interleave(k, dim=0) if k > 1 else ft
         kw = dict(resolve_180=False, sigma=self.sigma, temperature=self.temperature, window=self.window)
-        tr = estimate_translation(ft, fs, angle, scale, **kw)
-        if resolve_180:
-            turned = estimate_translation(ft, fs_turned, angle + 180.0, scale, **kw)
-            take = turned.confidence > tr.confidence
-            pick = lambda a, b: torch.where(take.view(-1, *([1] * (a.ndim - 1))), b, a)  # noqa: E731
-            tr = Translation(
-                pick(tr.tx, turned.tx),
-                pick(tr.ty, turned.ty),
-                pick(tr.angle, turned.angle),
-                pick(tr.confidence, turned.confidence),
-                pick(tr.surface, turned.surface),
-            )
-            fs = pick(fs, fs_turned)
-        return tr, {"t_template": ft, "t_source": fs}
+        results = [estimate_translation(ft_k, fs, angle + 180.0 * turn, scale, **kw) for turn, fs in enumerate(fs_all)]
+
+        def candidates(values: list[Tensor]) -> Tensor:  # (B * K, ...) per turn -> (B, K * turns, ...)
+            return torch.stack([v.view(batch, k, *v.shape[1:]) for v in values], dim=2).flatten(1, 2)
+
+        confidence = candidates([r.confidence for r in results])
+        if valid is not None:
+            confidence = confidence.masked_fill(~valid.repeat_interleave(len(turns), dim=1), -torch.inf)
+        choice = confidence.argmax(dim=1)
+        rows = torch.arange(batch, device=choice.device)
+
+        def pick(values: list[Tensor]) -> Tensor:
+            return candidates(values)[rows, choice]
+
+        tr = Translation(
+            pick([r.tx for r in results]),
+            pick([r.ty for r in results]),
+            pick([r.angle for r in results]),
+            pick([r.confidence for r in results]),
+            pick([r.surface for r in results]),
+        )
+        return (
+            tr,
+            {"t_template": ft, "t_source": pick(list(fs_all))},
+            torch.div(choice, len(turns), rounding_mode="floor"),
+        )
 
     def forward(self, template: Tensor, source: Tensor) -> DPCNOutput:
         """End to end, no ground truth: ``(B, C, H, W) x 2 -> DPCNOutput``."""
         self.check_inputs(template, source)
+        k = self.rotation_hypotheses
         with inputs_checked():
-            rs, features = self.rotation_scale(template, source)
-            unwarped = unwarp_rotation_scale(source, rs.angle, rs.scale)
-            tr, t_features = self.translation(template, unwarped, rs.angle, rs.scale)
-        pose = Pose(tr.tx, tr.ty, wrap_angle(tr.angle), rs.scale, tr.confidence)
+            rs, features = self.rotation_scale(template, source, k, self.spectrum_window_grid)
+            angle, scale = rs.candidate_angle.flatten(), rs.candidate_scale.flatten()  # (B * K,)
+            candidates = source.repeat_interleave(k, dim=0) if k > 1 else source
+            unwarped = unwarp_rotation_scale(candidates, angle, scale)
+            valid = torch.isfinite(rs.candidate_score)
+            tr, t_features, choice = self.translation(template, unwarped, angle, scale, valid=valid)
+        rows = torch.arange(template.shape[0], device=choice.device)
+        scale = rs.candidate_scale[rows, choice]
+        unwarped = unwarped.view(-1, k, *unwarped.shape[1:])[rows, choice]
+        pose = Pose(tr.tx, tr.ty, wrap_angle(tr.angle), scale, tr.confidence)
         return DPCNOutput(pose, rs, tr, unwarped, {**features, **t_features})
 
     @torch.no_grad()

@@ -2,7 +2,7 @@
 
 from .correlation import PhaseCorrelation, phase_correlation
 from .logpolar import LogPolar, log_polar, log_polar_grid, log_radius_step
-from .soft_argmax import SoftArgmax2d, soft_argmax2d, spatial_softmax2d
+from .soft_argmax import SoftArgmax2d, local_maxima2d, soft_argmax2d, spatial_softmax2d
 from .spectrum import MagnitudeSpectrum, apodization_window, highpass_filter, magnitude_spectrum
 
 __all__ = [
@@ -12,6 +12,7 @@ __all__ = [
     "SoftArgmax2d",
     "apodization_window",
     "highpass_filter",
+    "local_maxima2d",
     "log_polar",
     "log_polar_grid",
     "log_radius_step",

@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-__all__ = ["spatial_softmax2d", "soft_argmax2d", "SoftArgmax2d"]
+__all__ = ["spatial_softmax2d", "soft_argmax2d", "SoftArgmax2d", "local_maxima2d"]
 
 
 def _check_surface(surface: Tensor, temperature: float | Tensor) -> None:
@@ -41,6 +41,7 @@ def soft_argmax2d(
     window: int | None = None,
     circular: tuple[bool, bool] = (False, False),
     relative: bool = False,
+    peak: Tensor | None = None,
 ) -> Tensor:
     """Sub-pixel location of the peak of each surface, as the softmax expectation.
 
@@ -58,6 +59,9 @@ def soft_argmax2d(
             pixels whatever the peak height; with ``temperature`` around 0.1-0.5 that bump
             is wide enough to be sampled without pulling the estimate towards the integer
             arg-max, which makes the expectation unbiased to about 0.01 pixel on smooth peaks.
+        peak: ``(B, 2)`` integer ``(row, col)`` of the peak to refine instead of the hard
+            arg-max (e.g. a secondary maximum from :func:`local_maxima2d`); needs ``window``.
+            With ``relative`` the surface is then divided by its value there.
 
     Returns:
         ``(B, 2)`` float coordinates ``(row, col)`` in index units; circular axes are
@@ -65,13 +69,22 @@ def soft_argmax2d(
     """
     _check_surface(surface, temperature)
     batch, height, width = surface.shape
+    if peak is None:
+        flat_index = surface.detach().reshape(batch, -1).argmax(dim=-1)
+        peak_row = torch.div(flat_index, width, rounding_mode="floor")
+        peak_col = flat_index % width
+    else:
+        if window is None:
+            raise ValueError("soft_argmax2d: a given peak needs a window")
+        if peak.shape != (batch, 2) or peak.dtype.is_floating_point or peak.dtype == torch.bool:
+            raise ValueError(
+                f"peak must be a (B, 2) integer tensor of (row, col), got {tuple(peak.shape)} {peak.dtype}"
+            )
+        peak_row, peak_col = peak[:, 0].to(surface.device) % height, peak[:, 1].to(surface.device) % width
     if relative:
-        peak_value = surface.reshape(batch, -1).max(dim=-1).values
+        peak_value = surface[torch.arange(batch, device=surface.device), peak_row, peak_col]
         # A surface with no positive peak (no signal) is left as it is rather than blown up.
         surface = surface / peak_value.clamp_min(1e-6)[:, None, None]
-    flat_index = surface.detach().reshape(batch, -1).argmax(dim=-1)
-    peak_row = torch.div(flat_index, width, rounding_mode="floor")
-    peak_col = flat_index % width
     if window is None:
         prob = spatial_softmax2d(surface, temperature)
         rows = torch.arange(height, device=surface.device)
@@ -109,6 +122,51 @@ def soft_argmax2d(
     if circular[1]:
         col = torch.remainder(col, width)
     return torch.stack([row, col], dim=-1)
+
+
+def local_maxima2d(
+    surface: Tensor, k: int, radius: int = 4, circular: tuple[bool, bool] = (False, False)
+) -> tuple[Tensor, Tensor]:
+    """The ``k`` highest peaks of each surface, at least ``radius`` bins apart on some axis.
+
+    Greedy non-maximum suppression: take the arg-max, blank its ``(2 * radius + 1)``-square
+    neighbourhood (wrapping on ``circular`` axes), repeat. Not differentiable (indices); refine
+    each peak with ``soft_argmax2d(surface, ..., window=w, peak=indices[:, j])``.
+
+    Args:
+        surface: ``(B, H, W)`` scores.
+        k: number of peaks (``1 <= k <= H * W``).
+        radius: suppression half-size in bins.
+        circular: per axis ``(rows, cols)``, whether it wraps around.
+
+    Returns:
+        ``values`` ``(B, k)`` (descending; ``-inf`` where the surface has fewer than ``k``
+        peaks that far apart) and ``indices`` ``(B, k, 2)`` integer ``(row, col)``.
+    """
+    _check_surface(surface, 1.0)
+    batch, height, width = surface.shape
+    if not isinstance(k, int) or not 1 <= k <= height * width:
+        raise ValueError(f"k must be an integer in [1, {height * width}], got {k!r}")
+    if radius < 0:
+        raise ValueError(f"radius must be non-negative, got {radius}")
+    scores = surface.detach().clone()
+    rows = torch.arange(height, device=surface.device)
+    cols = torch.arange(width, device=surface.device)
+    values, indices = [], []
+    for _ in range(k):
+        value, flat = scores.reshape(batch, -1).max(dim=-1)
+        row, col = torch.div(flat, width, rounding_mode="floor"), flat % width
+        found = surface[torch.arange(batch, device=surface.device), row, col]
+        values.append(torch.where(value == -torch.inf, value, found))  # -inf: no peak left
+        indices.append(torch.stack([row, col], dim=-1))
+        d_row, d_col = rows[None] - row[:, None], cols[None] - col[:, None]
+        if circular[0]:
+            d_row = _wrap(d_row, height)
+        if circular[1]:
+            d_col = _wrap(d_col, width)
+        near = (d_row.abs() <= radius)[:, :, None] & (d_col.abs() <= radius)[:, None, :]
+        scores = scores.masked_fill(near, -torch.inf)
+    return torch.stack(values, dim=1), torch.stack(indices, dim=1)
 
 
 class SoftArgmax2d(nn.Module):

@@ -166,7 +166,7 @@ class DPCNModule(_EvaluationMixin, L.LightningModule):
         n = max(1, math.ceil(self.hparams.translation_fraction * template.shape[0]))  # phase-2 pairs
         unwarp_angle, unwarp_scale, tx, ty = unwarp_angle[:n], unwarp_scale[:n], tx[:n], ty[:n]
         unwarped = unwarp_rotation_scale(source[:n], unwarp_angle, unwarp_scale)
-        tr, _ = self.model.translation(template[:n], unwarped, unwarp_angle, unwarp_scale, resolve_180=False)
+        tr, _, _ = self.model.translation(template[:n], unwarped, unwarp_angle, unwarp_scale, resolve_180=False)
 
         m = self.model
         rs_centre = rotation_scale_target(angle, scale, m.n_angles, m.n_radii, m.radius_step)
@@ -263,9 +263,16 @@ class ClassicalModule(_EvaluationMixin, L.LightningModule):
         return None
 
 
-def load_matcher(ckpt_path: str | Path, map_location: str | torch.device = "cpu") -> DPCNModule:
+def load_matcher(
+    ckpt_path: str | Path,
+    map_location: str | torch.device = "cpu",
+    rotation_hypotheses: int | None = None,
+    spectrum_window_grid: int | None = None,
+) -> DPCNModule:
     """Load a DPCN checkpoint ready for ``.match(template, source) -> Pose`` (eval mode).
 
+    ``rotation_hypotheses`` and ``spectrum_window_grid`` replace the checkpoint's inference
+    settings of those names (see :class:`~dpcn.models.DPCN`); ``None`` keeps them.
     Raises :class:`CheckpointError` naming the problem for a missing, corrupt or foreign file.
     """
     path = Path(ckpt_path)
@@ -284,4 +291,8 @@ def load_matcher(ckpt_path: str | Path, map_location: str | torch.device = "cpu"
         module.load_state_dict(checkpoint["state_dict"])
     except (TypeError, RuntimeError, ValueError) as error:
         raise CheckpointError(f"checkpoint {path} does not fit this version of dpcn: {error}") from None
+    if rotation_hypotheses is not None:
+        module.model.rotation_hypotheses = rotation_hypotheses
+    if spectrum_window_grid is not None:
+        module.model.spectrum_window_grid = spectrum_window_grid
     return module.to(map_location).eval()
