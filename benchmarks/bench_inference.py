@@ -6,7 +6,7 @@ the median of several timed rounds after a warm-up. Weights are random unless --
 the cost does not depend on them.
 
     python benchmarks/bench_inference.py [--device cpu|cuda] [--threads 2] [--batch 32] [--ckpt last.ckpt]
-        [--hypotheses 1,3]   # also time other numbers of phase-1 peaks checked by phase 2
+        [--window-grids 1,3] [--hypotheses 1,3]   # also time other stage-1 inference settings
 """
 
 from __future__ import annotations
@@ -37,6 +37,8 @@ ARCHITECTURE = (
     "n_angles",
     "n_radii",
     "rotation_hypotheses",
+    "spectrum_window_grid",
+    "spectrum_window_step",
 )
 
 
@@ -71,9 +73,8 @@ def main() -> None:
     parser.add_argument("--rounds", type=int, default=10)
     parser.add_argument("--presets", default="tiny,paper")
     parser.add_argument("--ckpt", default=None, help="time this checkpoint instead of randomly initialised presets")
-    parser.add_argument(
-        "--hypotheses", default=None, help="comma-separated rotation_hypotheses to time (default: the preset's)"
-    )
+    parser.add_argument("--hypotheses", default=None, help="comma-separated rotation_hypotheses values to time")
+    parser.add_argument("--window-grids", default=None, help="comma-separated spectrum_window_grid values to time")
     parser.add_argument("--bf16", action="store_true", help="autocast the U-Nets to bfloat16 (GPU)")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
@@ -89,17 +90,21 @@ def main() -> None:
     else:
         for name in args.presets.split(","):
             models[f"DPCN {name}"] = DPCN(image_size=(args.size, args.size), **preset(name))
-    if args.hypotheses:
-        for label, model in [(k, m) for k, m in models.items()]:
-            del models[label]
-            for k in (int(v) for v in args.hypotheses.split(",")):
-                models[f"{label}, K={k}"] = copy.deepcopy(model)
-                models[f"{label}, K={k}"].rotation_hypotheses = k
+    for option, values, short in (
+        ("spectrum_window_grid", args.window_grids, "grid"),
+        ("rotation_hypotheses", args.hypotheses, "K"),
+    ):
+        if values:  # one copy per value, same weights
+            for label, model in list(models.items()):
+                del models[label]
+                for value in (int(v) for v in values.split(",")):
+                    models[f"{label}, {short}={value}"] = variant = copy.deepcopy(model)
+                    setattr(variant, option, value)
     models["classical (no U-Nets)"] = PhaseCorrelationEstimator()
 
     generator = torch.Generator().manual_seed(0)
     pairs = torch.rand(2, args.batch, 1, args.size, args.size, generator=generator).to(device)
-    print(f"{'model':28s} {'params':>9s} {'1 pair (ms)':>12s} {f'batch {args.batch} (ms/pair)':>20s} {'pairs/s':>9s}")
+    print(f"{'model':34s} {'params':>9s} {'1 pair (ms)':>12s} {f'batch {args.batch} (ms/pair)':>20s} {'pairs/s':>9s}")
     for label, model in models.items():
         model = model.to(device).eval()
         params = sum(p.numel() for p in model.parameters())
@@ -113,7 +118,7 @@ def main() -> None:
 
         one = timed(lambda: run(1), device, args.rounds)
         many = timed(lambda: run(args.batch), device, max(3, args.rounds // 3)) / args.batch
-        print(f"{label:28s} {params:9d} {1000 * one:12.1f} {1000 * many:20.2f} {1 / many:9.0f}")
+        print(f"{label:34s} {params:9d} {1000 * one:12.1f} {1000 * many:20.2f} {1 / many:9.0f}")
 
 
 if __name__ == "__main__":

@@ -145,26 +145,19 @@ def test_validate_and_test_print_the_paper_table(trained, tmp_path):
     assert "acc_x@5" in out.stdout and "acc_rot@0.5" in out.stdout
     rows = list(csv.DictReader((tmp_path / "t" / "metrics_test.csv").open()))
     assert rows[0]["n"] == "4.0" and 0.0 <= float(rows[0]["acc_scale@0.2"]) <= 100.0
-    out = dpcn(
-        "test", *SMALL, f"ckpt_path={ckpt}", "rotation_hypotheses=3", f"hydra.run.dir={tmp_path / 'k'}", cwd=tmp_path
-    )
+    # inference settings replace the checkpoint's
+    inference = ["rotation_hypotheses=3", "spectrum_window_grid=3"]
+    out = dpcn("test", *SMALL, f"ckpt_path={ckpt}", *inference, f"hydra.run.dir={tmp_path / 'k'}", cwd=tmp_path)
     assert "acc_rot@1" in out.stdout and (tmp_path / "k" / "metrics_test.csv").is_file()
-    assert load_matcher(ckpt, rotation_hypotheses=3).model.rotation_hypotheses == 3
-    assert (
-        load_matcher(ckpt).model.rotation_hypotheses
-        == DPCNModule(**torch.load(ckpt)["hyper_parameters"]).model.rotation_hypotheses
-    )
-    bad = dpcn(
-        "test",
-        *SMALL,
-        f"ckpt_path={ckpt}",
-        "rotation_hypotheses=0",
-        f"hydra.run.dir={tmp_path / 'b'}",
-        cwd=tmp_path,
-        check=False,
-    )
-    assert bad.returncode == 2 and "rotation_hypotheses must be an integer >= 1, got 0" in bad.stderr
-    assert "Traceback" not in bad.stderr
+    matcher = load_matcher(ckpt, rotation_hypotheses=2, spectrum_window_grid=5)
+    assert (matcher.model.rotation_hypotheses, matcher.model.spectrum_window_grid) == (2, 5)
+    for setting, message in [
+        ("rotation_hypotheses=0", "rotation_hypotheses must be an integer >= 1, got 0"),
+        ("spectrum_window_grid=2", "spectrum_window_grid must be an odd integer >= 1, got 2"),
+    ]:
+        run = tmp_path / setting.split("=")[0]
+        bad = dpcn("test", *SMALL, f"ckpt_path={ckpt}", setting, f"hydra.run.dir={run}", cwd=tmp_path, check=False)
+        assert bad.returncode == 2 and message in bad.stderr and "Traceback" not in bad.stderr
     out = dpcn("validate", *SMALL_DATA, "model=classical", f"hydra.run.dir={tmp_path / 'v'}", cwd=tmp_path)
     assert "classical on sim_heterogeneous" in out.stdout
     assert (tmp_path / "v" / "metrics_validate.csv").is_file()
