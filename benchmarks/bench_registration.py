@@ -79,8 +79,8 @@ def score(estimates: np.ndarray, truth: np.ndarray) -> dict[str, float]:
     }
 
 
-def run_dpcn(templates, sources, batch: int, device: str):
-    estimator = PhaseCorrelationEstimator().to(device)
+def run_dpcn(templates, sources, batch: int, device: str, **options):
+    estimator = PhaseCorrelationEstimator(**options).to(device)
     t = torch.from_numpy(templates)[:, None].to(device)
     s = torch.from_numpy(sources)[:, None].to(device)
     with torch.inference_mode():
@@ -112,6 +112,9 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument(
+        "--window-grids", default="", help="also time dpcn with these spectrum_window_grid values, e.g. 3"
+    )
     parser.add_argument("--imreg-pairs", type=int, default=None, help="limit imreg_dft to this many pairs (slow)")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
@@ -125,6 +128,9 @@ def main() -> None:
     rows = []
     est, per_pair = run_dpcn(templates, sources, args.batch, args.device)
     rows.append((f"dpcn batched (batch {args.batch})", score(est, truth), per_pair, len(truth)))
+    for grid in (int(g) for g in args.window_grids.split(",") if g):
+        est_g, per_g = run_dpcn(templates, sources, args.batch, args.device, spectrum_window_grid=grid)
+        rows.append((f"dpcn batched, {grid}x{grid} spectrum windows", score(est_g, truth), per_g, len(truth)))
     one, per_one = run_dpcn(templates[:50], sources[:50], 1, args.device)
     rows.append(("dpcn one pair at a time", score(one, truth[:50]), per_one, 50))
     cv, per_cv, n_cv = run_pairwise(opencv_fourier_mellin, templates, sources)

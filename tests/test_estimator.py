@@ -10,6 +10,7 @@ from dpcn.estimator import (
     estimate_rotation_scale,
     estimate_translation,
     unwarp_rotation_scale,
+    window_grid_shifts,
 )
 from dpcn.pose import Pose, warp_by_pose
 
@@ -137,6 +138,10 @@ def test_rejects_bad_options_and_inputs():
         PhaseCorrelationEstimator(scale_range=(1.5, 2.0))
     with pytest.raises(ValueError, match="at least 2"):
         PhaseCorrelationEstimator(n_angles=1)
+    with pytest.raises(ValueError, match="spectrum_window_grid must be an odd integer >= 1, got 2"):
+        PhaseCorrelationEstimator(spectrum_window_grid=2)
+    with pytest.raises(ValueError, match="spectrum_window_step"):
+        PhaseCorrelationEstimator(spectrum_window_step=0.0)
     est = PhaseCorrelationEstimator()
     with pytest.raises(ValueError, match="same size"):
         est(torch.rand(1, 1, 32, 32), torch.rand(1, 1, 32, 40))
@@ -245,3 +250,26 @@ def test_gradcheck_rotation_scale_stage_with_window_shifts():
         ]
     )
     assert gradcheck(fn, (a, b), eps=1e-6, atol=1e-4)
+
+
+def test_classical_estimator_with_a_window_grid_recovers_opencv_poses():
+    image = photo("coffee", (128, 128))
+    poses = [(30.0, -25.0, 140.0, 1.15), (-28.0, 22.0, -35.0, 0.85)]
+    t = torch.from_numpy(np.stack([image, image]))[:, None]
+    s = torch.from_numpy(np.stack([cv2_warp(image, *p) for p in poses]))[:, None]
+    pose = PhaseCorrelationEstimator(spectrum_window_grid=3)(t, s)
+    for i, (tx, ty, angle, scale) in enumerate(poses):
+        assert angle_error(pose.angle[i], angle) < 0.5 and abs(float(pose.scale[i]) / scale - 1) < 0.01
+        assert abs(float(pose.tx[i]) - tx) < 1.0 and abs(float(pose.ty[i]) - ty) < 1.0
+    assert window_grid_shifts(128, 96, 3) == [
+        (0, 0),
+        (0, -12),
+        (0, 12),
+        (-16, 0),
+        (-16, -12),
+        (-16, 12),
+        (16, 0),
+        (16, -12),
+        (16, 12),
+    ]
+    assert window_grid_shifts(128, 96, 1) == [(0, 0)]

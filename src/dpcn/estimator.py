@@ -32,6 +32,7 @@ __all__ = [
     "estimate_rotation_scale",
     "unwarp_rotation_scale",
     "estimate_translation",
+    "window_grid_shifts",
     "PhaseCorrelationEstimator",
 ]
 
@@ -85,6 +86,19 @@ def _scale_mask(n_radii: int, step: float, scale_range: tuple[float, float] | No
     ok = (scales_log >= math.log(lo) - step) & (scales_log <= math.log(hi) + step)
     # Finite (correlation values are <= 1): -inf would turn into NaN gradients downstream.
     return torch.where(ok, 0.0, -1.0e4).to(dtype)[None, None, :]
+
+
+def window_grid_shifts(height: int, width: int, grid: int = 1, step: float = 0.125) -> list[tuple[int, int]]:
+    """Circular shifts ``(rows, cols)`` of a ``height x width`` map that centre its spectrum
+    window on a ``grid x grid`` set of points ``step`` of the side apart (``(0, 0)`` first):
+    the ``source_shifts`` of :func:`estimate_rotation_scale`."""
+    if isinstance(grid, bool) or not isinstance(grid, int) or grid < 1 or grid % 2 == 0:
+        raise ValueError(f"spectrum_window_grid must be an odd integer >= 1, got {grid!r}")
+    if not 0.0 < step < 0.5:
+        raise ValueError(f"spectrum_window_step must be in (0, 0.5) of the image side, got {step!r}")
+    dy, dx = round(step * height), round(step * width)
+    steps = sorted(range(-(grid // 2), grid // 2 + 1), key=abs)
+    return [(i * dy, j * dx) for i in steps for j in steps]
 
 
 @full_precision
@@ -266,6 +280,9 @@ class PhaseCorrelationEstimator(nn.Module):
         resolve_180: recover the full 360 degrees (else angles are in ``[-90, 90)``).
         refine: extra stage-1 passes on the un-warped source; each removes the residual
             rotation/scale left by the grid resolution.
+        spectrum_window_grid, spectrum_window_step: stage 1 also takes the source's spectrum
+            under an ``n x n`` grid of windows ``step`` of the side apart, the best correlation
+            per log-polar bin counting (:func:`window_grid_shifts`); ``1``: centred only.
     """
 
     def __init__(
@@ -283,6 +300,8 @@ class PhaseCorrelationEstimator(nn.Module):
         scale_range: tuple[float, float] | None = (0.5, 2.0),
         resolve_180: bool = True,
         refine: int = 0,
+        spectrum_window_grid: int = 1,
+        spectrum_window_step: float = 0.125,
     ) -> None:
         super().__init__()
         log_polar_grid(8, 8, n_angles, n_radii, min_radius, max_radius)  # validates the grid
@@ -314,15 +333,19 @@ class PhaseCorrelationEstimator(nn.Module):
         if refine < 0:
             raise ValueError(f"refine must be >= 0, got {refine}")
         self.refine = refine
+        window_grid_shifts(8, 8, spectrum_window_grid, spectrum_window_step)  # validates them
+        self.spectrum_window = (spectrum_window_grid, spectrum_window_step)
 
     def forward(self, template: Tensor, source: Tensor) -> Pose:
         check_pair(template, source, min_size=8)
+        shifts = window_grid_shifts(*source.shape[-2:], *self.spectrum_window)
+        options = dict(self.rotation_scale_options, source_shifts=shifts)
         with inputs_checked():
-            rs = estimate_rotation_scale(template, source, **self.rotation_scale_options)
+            rs = estimate_rotation_scale(template, source, **options)
             angle, scale = rs.angle, rs.scale
             unwarped = unwarp_rotation_scale(source, angle, scale)
             for _ in range(self.refine):
-                residual = estimate_rotation_scale(template, unwarped, **self.rotation_scale_options)
+                residual = estimate_rotation_scale(template, unwarped, **options)
                 angle, scale = angle + residual.angle, scale * residual.scale
                 unwarped = unwarp_rotation_scale(source, angle, scale)
             tr = estimate_translation(template, unwarped, angle, scale, **self.translation_options)

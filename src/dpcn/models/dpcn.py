@@ -32,6 +32,7 @@ from ..estimator import (
     estimate_rotation_scale,
     estimate_translation,
     unwarp_rotation_scale,
+    window_grid_shifts,
 )
 from ..ops._checks import check_pair, inputs_checked
 from ..ops.logpolar import log_polar_grid, log_radius_step
@@ -148,11 +149,8 @@ class DPCN(nn.Module):
         self.window = window
         self.scale_range = None if scale_range is None else (float(scale_range[0]), float(scale_range[1]))
         self.rotation_hypotheses = rotation_hypotheses
+        window_grid_shifts(8, 8, spectrum_window_grid, spectrum_window_step)  # validates them
         self.spectrum_window_grid = spectrum_window_grid
-        if not 0.0 < spectrum_window_step < 0.5:
-            raise ValueError(
-                f"spectrum_window_step must be in (0, 0.5) of the image side, got {spectrum_window_step!r}"
-            )
         self.spectrum_window_step = float(spectrum_window_step)
         if isinstance(train_temperature, (int, float)):
             train_temperature = (train_temperature, train_temperature)
@@ -183,16 +181,13 @@ class DPCN(nn.Module):
 
     @spectrum_window_grid.setter
     def spectrum_window_grid(self, value: int) -> None:
-        if isinstance(value, bool) or not isinstance(value, int) or value < 1 or value % 2 == 0:
-            raise ValueError(f"spectrum_window_grid must be an odd integer >= 1, got {value!r}")
+        window_grid_shifts(8, 8, value)  # validates it
         self._spectrum_window_grid = value
 
     def spectrum_window_shifts(self, height: int, width: int, grid: int) -> list[tuple[int, int]]:
-        """Circular shifts ``(rows, cols)`` of a ``height x width`` map for a ``grid x grid``
-        set of windows (``(0, 0)`` first)."""
-        dy, dx = round(self.spectrum_window_step * height), round(self.spectrum_window_step * width)
-        steps = sorted(range(-(grid // 2), grid // 2 + 1), key=abs)
-        return [(i * dy, j * dx) for i in steps for j in steps]
+        """Circular shifts ``(rows, cols)`` of a ``height x width`` feature map for a
+        ``grid x grid`` set of windows (``(0, 0)`` first; see :func:`~dpcn.estimator.window_grid_shifts`)."""
+        return window_grid_shifts(height, width, grid, self.spectrum_window_step)
 
     @property
     def radius_step(self) -> float:
