@@ -23,6 +23,7 @@ from dpcn.ops import (
     spatial_softmax2d,
 )
 from dpcn.ops._checks import inputs_checked
+from dpcn.ops.correlation import cross_power_spectrum
 
 from .conftest import photo
 
@@ -330,3 +331,13 @@ class TestLocalMaxima:
             lambda s, t: soft_argmax2d(s, t, window=1, circular=(True, False), relative=True, peak=indices[:, 1]),
             (surface, temperature),
         )
+
+
+def test_cross_power_spectrum_broadcasts_several_b_against_one_a():
+    a, b = f64(2, 3, 8, 10), f64(4, 2, 3, 8, 10)
+    many = cross_power_spectrum(a, b)
+    assert many.shape == (4, 2, 8, 6)
+    for i in range(4):
+        torch.testing.assert_close(many[i], cross_power_spectrum(a, b[i]))
+    with pytest.raises(ValueError):
+        cross_power_spectrum(a, f64(4, 2, 3, 8, 12))

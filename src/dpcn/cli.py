@@ -65,6 +65,11 @@ def _resolve_device(name: str) -> str:
     return name
 
 
+def _inference_settings(cfg: DictConfig) -> dict[str, int | None]:
+    """The top-level overrides of a checkpoint's inference settings (``None``: keep)."""
+    return {"rotation_hypotheses": cfg.rotation_hypotheses, "spectrum_window_grid": cfg.spectrum_window_grid}
+
+
 def run_predict(cfg: DictConfig) -> None:
     from .io import load_image, prepare_pair
     from .registration import register
@@ -76,7 +81,7 @@ def run_predict(cfg: DictConfig) -> None:
     if cfg.ckpt_path:
         from .training.module import load_matcher
 
-        matcher = load_matcher(cfg.ckpt_path, device, cfg.rotation_hypotheses, cfg.spectrum_window_grid)
+        matcher = load_matcher(cfg.ckpt_path, device, **_inference_settings(cfg))
         t, s = prepare_pair(template, source, device)
         pose = matcher.match(t, s)
     else:
@@ -194,7 +199,7 @@ def _run_evaluation(cfg: DictConfig, stage: str) -> None:
     datamodule = instantiate(cfg.data)
     ckpt = _check_ckpt(cfg.ckpt_path)
     if ckpt is not None:
-        module = load_matcher(ckpt, "cpu", cfg.rotation_hypotheses, cfg.spectrum_window_grid)
+        module = load_matcher(ckpt, **_inference_settings(cfg))
         module.translation_threshold = float(cfg.data.translation_threshold)
         name = f"DPCN {ckpt.name}"
     else:

@@ -20,7 +20,7 @@ import torch
 from torch import Tensor, nn
 
 from .ops._checks import check_pair, full_precision, inputs_checked
-from .ops.correlation import correlation_surface
+from .ops.correlation import correlation_surface, cross_power_spectrum
 from .ops.logpolar import log_polar, log_polar_grid, log_radius_step
 from .ops.soft_argmax import local_maxima2d, soft_argmax2d
 from .ops.spectrum import apodization_window, magnitude_spectrum
@@ -150,9 +150,7 @@ def estimate_rotation_scale(
     batch = len(template)
     lp_t, lp_all = maps[:batch], maps[batch:]
     lp_s = lp_all[:batch]
-    # cross_power_spectrum for every source window against the template's one DFT
-    fa, fb = torch.fft.rfft2(lp_t), torch.fft.rfft2(lp_all).view(len(sources), *lp_t.shape[:-1], -1)
-    cross = (fb * fa.conj()).sum(dim=2).flatten(0, 1)
+    cross = cross_power_spectrum(lp_t, lp_all.view(len(sources), *lp_t.shape)).flatten(0, 1)
     surface = correlation_surface(cross, (n_angles, n_radii), sigma=sigma)
     if shifts:
         surface = surface.view(len(sources), batch, n_angles, n_radii).amax(dim=0)

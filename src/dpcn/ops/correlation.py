@@ -27,9 +27,15 @@ def cross_power_spectrum(a: Tensor, b: Tensor) -> Tensor:
     ``-2 pi k . d``. The spectrum of ``b`` point-mirrored about the centre (``b(-p)``
     circularly, a half-turn about ``(W / 2, H / 2)``) is ``conj(B)``, so the cross-power of
     that mirrored ``b`` is ``conj(B * A)`` at no extra DFT.
+
+    ``b`` may carry extra leading dimensions, ``(..., B, C, H, W) -> (..., B, H, W // 2 + 1)``:
+    several ``b`` against one ``a``, whose DFT is then computed once.
     """
-    check_pair(a, b, ("a", "b"))
-    return (torch.fft.rfft2(b) * torch.fft.rfft2(a).conj()).sum(dim=1)
+    if isinstance(b, Tensor) and b.ndim > 4:
+        check_pair(a, b[(0,) * (b.ndim - 4)], ("a", "b"))
+    else:
+        check_pair(a, b, ("a", "b"))
+    return (torch.fft.rfft2(b) * torch.fft.rfft2(a).conj()).sum(dim=-3)
 
 
 def correlation_surface(cross: Tensor, size: tuple[int, int], sigma: float = 0.0, eps: float = 1e-6) -> Tensor:
