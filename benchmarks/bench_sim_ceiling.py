@@ -21,12 +21,17 @@ them:
 With ``--checkpoint`` it also asks which of a trained model's two stage-1 extractors loses
 the pairs: stage 1 (rotation modulo 180 degrees) on the learned features of both images, and
 on the learned features of one image against the ideal maps of the other (shrunk like the
-model's stage-1 input, one copy per feature channel).
+model's stage-1 input, one copy per feature channel). Then it looks at the pairs stage 1
+misses with the model's own inference settings: is the true peak among the ``--peaks``
+strongest of the log-polar surface (a wrong choice) or not at all (features that do not
+correlate), how strong the peaks are, and how the accuracy depends on the scale and the
+translation.
 
 It swaps the private render functions of :mod:`dpcn.data.simulation` while it runs (the
 scene, pose and crop geometry stay the module's own).
 
-    python benchmarks/bench_sim_ceiling.py [--pairs 300] [--contrast 0.02 0.05 0.1] [--checkpoint CKPT]
+    python benchmarks/bench_sim_ceiling.py [--pairs 300] [--contrast 0.02 0.05 0.1] \
+        [--checkpoint CKPT [--window-grid 3] [--peaks 5]]
 """
 
 from __future__ import annotations
@@ -140,6 +145,44 @@ def stage1_sides(model: DPCN, pairs: int, contrast: float) -> dict[str, float]:
     return {name: 100.0 * float(torch.cat(h).float().mean()) for name, h in hits.items()}
 
 
+@torch.no_grad()
+def stage1_misses(model: DPCN, pairs: int, peaks: int = 5) -> dict[str, float]:
+    """Stage 1 with the model's window grid: where its misses (rotation mod 180 off by > 1
+    degree) come from. Scores are log-polar correlation peak heights."""
+    model.eval()
+    angle_errors, found, first, second, scales, shifts = [], [], [], [], [], []
+    for template, source, gt in batches("pixels", pairs):
+        rs, _ = model.rotation_scale(template, source, peaks, model.spectrum_window_grid)
+        candidate_errors = wrap_angle(rs.candidate_angle - gt[:, 2:3], period=180.0).abs()
+        true_peak = (candidate_errors <= 1.0) & ((rs.candidate_scale / gt[:, 3:4] - 1.0).abs() <= 0.05)
+        angle_errors.append(candidate_errors[:, 0])
+        found.append(true_peak.any(dim=1))
+        first.append(rs.candidate_score[:, 0])
+        second.append(rs.candidate_score[:, 1] if peaks > 1 else torch.full_like(rs.candidate_score[:, 0], torch.nan))
+        scales.append(gt[:, 3])
+        shifts.append(gt[:, :2].norm(dim=1))
+    error, found, first, second = torch.cat(angle_errors), torch.cat(found), torch.cat(first), torch.cat(second)
+    scale, shift = torch.cat(scales), torch.cat(shifts)
+    hit = error <= 1.0
+
+    def acc(mask: torch.Tensor) -> float:
+        return 100.0 * float(hit[mask].float().mean()) if mask.any() else float("nan")
+
+    return {
+        "rotation mod 180 within 1 deg, %": acc(torch.ones_like(hit)),
+        "misses": float((~hit).sum()),
+        f"misses with the true peak among the {peaks} strongest": float((found & ~hit).sum()),
+        "median peak score, hits": float(first[hit].median()) if hit.any() else float("nan"),
+        "median second peak score, hits": float(second[hit].median()) if hit.any() else float("nan"),
+        "median peak score, misses": float(first[~hit].median()) if (~hit).any() else float("nan"),
+        "within 1 deg, scale < 0.9, %": acc(scale < 0.9),
+        "within 1 deg, scale 0.9-1.1, %": acc((scale >= 0.9) & (scale <= 1.1)),
+        "within 1 deg, scale > 1.1, %": acc(scale > 1.1),
+        "within 1 deg, |t| < 30 px, %": acc(shift < 30.0),
+        "within 1 deg, |t| >= 30 px, %": acc(shift >= 30.0),
+    }
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--pairs", type=int, default=300)
@@ -147,17 +190,19 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--checkpoint", help="a trained DPCN checkpoint: which stage-1 extractor loses the pairs")
     parser.add_argument("--sides-contrast", type=float, default=0.05, help="template threshold of the per-side check")
+    parser.add_argument("--window-grid", type=int, default=None, help="stage-1 window grid (default: the checkpoint's)")
+    parser.add_argument("--peaks", type=int, default=5, help="stage-1 peaks searched for the true one in the misses")
     args = parser.parse_args()
-    if args.pairs < 1 or args.threads < 1:
-        parser.error("--pairs and --threads must be >= 1")
+    if args.pairs < 1 or args.threads < 1 or args.peaks < 1:
+        parser.error("--pairs, --threads and --peaks must be >= 1")
     if min([*args.contrast, args.sides_contrast]) < 0:
         parser.error("contrasts must be >= 0")
     torch.set_num_threads(args.threads)
     model = None
     if args.checkpoint:  # before the long part: a bad path fails at once
         try:
-            model = load_matcher(args.checkpoint).model
-        except CheckpointError as error:
+            model = load_matcher(args.checkpoint, spectrum_window_grid=args.window_grid).model
+        except (CheckpointError, ValueError) as error:
             parser.error(str(error))
 
     runs = [("pixels", 0.0), ("gradient", 0.0), ("all-boundaries", 0.0)]
@@ -175,6 +220,10 @@ def main() -> None:
         print("template features / source features")
         for name, acc in stage1_sides(model, args.pairs, args.sides_contrast).items():
             print(f"  {name:<32}{acc:>6.1f}")
+        grid = model.spectrum_window_grid
+        print(f"\nstage-1 misses, learned features, {grid} x {grid} spectrum windows (the model's setting)")
+        for name, value in stage1_misses(model, args.pairs, args.peaks).items():
+            print(f"  {name:<56}{value:>8.3g}" if "score" in name else f"  {name:<56}{value:>8.1f}")
 
 
 if __name__ == "__main__":

@@ -7,6 +7,8 @@ import pytest
 import torch
 
 import dpcn.data.simulation as sim
+from dpcn.models import DPCN
+from dpcn.pose import wrap_angle
 
 
 @pytest.fixture(scope="module")
@@ -41,3 +43,19 @@ def test_rendering_restores_the_module_and_interleaved_streams_stay_apart(ceilin
     with pytest.raises(RuntimeError), ceiling.rendering("gradient"):
         raise RuntimeError("boom")
     assert (sim._render_a, sim._render_b) == (render_a, render_b)
+
+
+def test_stage1_misses_counts_what_stage1_gets_wrong(ceiling):
+    torch.manual_seed(0)
+    # Untrained with the input skip: stage 1 is classical phase correlation of the pixels,
+    # which misses most heterogeneous pairs (Table 1's classical row).
+    model = DPCN(base_channels=2, depth=1, input_skip=True, rotation_scale_downsample=2, spectrum_window_grid=3)
+    report = ceiling.stage1_misses(model, pairs=6, peaks=3)
+    template, source, pose = next(ceiling.batches("pixels", pairs=6))
+    with torch.no_grad():
+        rs, _ = model.eval().rotation_scale(template, source, 1, 3)
+    misses = int((wrap_angle(rs.angle - pose[:, 2], period=180.0).abs() > 1.0).sum())
+    assert report["misses"] == misses > 0
+    assert report["rotation mod 180 within 1 deg, %"] == pytest.approx(100.0 * (6 - misses) / 6)
+    assert 0 <= report["misses with the true peak among the 3 strongest"] <= misses
+    assert report["median peak score, misses"] > 0
