@@ -74,10 +74,12 @@ def test_loss_weights_and_errors():
         DPCNLoss(l1_weight=0.0, kl_weight=0.0)
     with pytest.raises(ValueError, match="sigma"):
         DPCNLoss(sigma=0.0)
-    with pytest.raises(ValueError, match=r"loss\.l1_rotation must be a number, got 'abc'"):
+    with pytest.raises(ValueError, match=r"loss\.l1_rotation must be a finite number >= 0, got 'abc'"):
         DPCNLoss(l1_rotation="abc")
-    with pytest.raises(ValueError, match=r"loss\.kl_rotation_scale must be a number"):
+    with pytest.raises(ValueError, match=r"loss\.kl_rotation_scale must be a finite number >= 0"):
         DPCNLoss(kl_weight="x")
+    with pytest.raises(ValueError, match=r"loss\.l1_scale must be a finite number >= 0, got -1"):
+        DPCNLoss(l1_scale=-1)
     surface = torch.randn(2, 8, 8, dtype=torch.float64)
     centre = torch.tensor([[1.0, 2.0], [5.5, 6.5]], dtype=torch.float64)
     out = DPCNLoss()(surface, centre, surface, centre, torch.tensor([0.1, 0.1], dtype=torch.float64))

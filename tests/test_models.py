@@ -61,8 +61,10 @@ def test_unet_skip_convolution_equals_convolving_the_concatenation():
 
 
 def test_unet_rejects_bad_sizes():
-    with pytest.raises(ValueError, match="invalid U-Net size"):
+    with pytest.raises(ValueError, match="U-Net base_channels must be an integer >= 1, got 0"):
         UNet(1, 1, base_channels=0)
+    with pytest.raises(ValueError, match="U-Net depth must be an integer >= 0, got 'abc'"):
+        UNet(1, 1, depth="abc")
     with pytest.raises(ValueError, match="unknown norm"):
         UNet(norm="layer")
     with pytest.raises(ValueError, match="unknown upsample"):

@@ -186,6 +186,9 @@ def test_predict_with_a_checkpoint(trained, tmp_path):
         (["fit", "model=classical", "model.net.depth=2"], "Could not override 'model.net.depth'"),
         (["fit", "data.batch_size=0"], "batch_size"),
         (["fit", "model.net.norm=layer"], "unknown norm 'layer'"),
+        (["fit", "model.lr=abc"], "model.lr must be a finite number > 0, got 'abc'"),
+        (["fit", "model.net.sigma=abc"], "model.net.sigma must be a finite number >= 0, got 'abc'"),
+        (["fit", "trainer.max_epochs=abc"], "trainer.max_epochs must be an integer >= -1, got 'abc'"),
     ],
 )
 def test_bad_runs_fail_in_one_line(tmp_path, args, message):

@@ -107,6 +107,23 @@ def _check_ckpt(path: str | None) -> Path | None:
     return p
 
 
+# Trainer settings checked here: Lightning rejects a string with a bare assertion.
+_TRAINER_INTS = {"max_epochs": -1, "min_epochs": 0, "max_steps": -1, "num_nodes": 1, "log_every_n_steps": 1,
+                 "check_val_every_n_epoch": 1, "accumulate_grad_batches": 1}  # fmt: skip
+
+
+def _check_trainer(cfg: DictConfig) -> None:
+    from ._validate import check_int, check_number
+
+    for key, low in _TRAINER_INTS.items():
+        if cfg.trainer.get(key) is not None:
+            check_int(f"trainer.{key}", cfg.trainer[key], low=low)
+    if cfg.trainer.get("gradient_clip_val") is not None:
+        check_number("trainer.gradient_clip_val", cfg.trainer.gradient_clip_val, low=0.0)
+    if cfg.get("checkpoint_every_n_steps") is not None:
+        check_int("checkpoint_every_n_steps", cfg.checkpoint_every_n_steps, low=1)
+
+
 def _trainer(cfg: DictConfig, run_dir: Path, fit: bool):
     import importlib.util
 
@@ -116,6 +133,7 @@ def _trainer(cfg: DictConfig, run_dir: Path, fit: bool):
 
     from .training.checkpointing import AtomicCheckpointIO
 
+    _check_trainer(cfg)
     # metrics.csv goes straight into the run directory, beside Hydra's files (hence the filter:
     # the logger would warn that the directory is not empty).
     warnings.filterwarnings("ignore", message="Experiment logs directory .* exists and is not empty")

@@ -94,7 +94,7 @@ def window_grid_shifts(height: int, width: int, grid: int = 1, step: float = 0.1
     the ``source_shifts`` of :func:`estimate_rotation_scale`."""
     if isinstance(grid, bool) or not isinstance(grid, int) or grid < 1 or grid % 2 == 0:
         raise ValueError(f"spectrum_window_grid must be an odd integer >= 1, got {grid!r}")
-    if not 0.0 < step < 0.5:
+    if isinstance(step, bool) or not isinstance(step, (int, float)) or not 0.0 < step < 0.5:
         raise ValueError(f"spectrum_window_step must be in (0, 0.5) of the image side, got {step!r}")
     dy, dx = round(step * height), round(step * width)
     steps = sorted(range(-(grid // 2), grid // 2 + 1), key=abs)

@@ -9,6 +9,8 @@ import lightning as L
 import torch
 from torch.utils.data import DataLoader, Dataset, Sampler
 
+from .._validate import check_int, check_number
+
 __all__ = ["EpochBlockSampler", "PairDataModule", "ResumableDataLoader"]
 
 
@@ -113,11 +115,16 @@ class PairDataModule(L.LightningDataModule):
         **references: Any,
     ) -> None:
         super().__init__()
-        if batch_size < 1 or epoch_size < 1 or val_length < 1 or test_length < 1:
-            raise ValueError(
-                f"batch_size, epoch_size, val_length, test_length must be >= 1, got "
-                f"{batch_size}, {epoch_size}, {val_length}, {test_length}"
-            )
+        for key, value, low in (
+            ("batch_size", batch_size, 1),
+            ("epoch_size", epoch_size, 1),
+            ("train_length", train_length, 1),
+            ("val_length", val_length, 1),
+            ("test_length", test_length, 1),
+            ("num_workers", num_workers, 0),
+        ):
+            check_int(f"data.{key}", value, low)
+        check_number("data.translation_threshold", translation_threshold, low=0.0, low_open=True)
         self.factory = dataset
         self.lengths = {"train": train_length, "val": val_length, "test": test_length}
         self.seeds = {"train": 0, "val": 1, "test": 2, **(seeds or {})}

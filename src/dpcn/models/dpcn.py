@@ -20,12 +20,14 @@ Both are inference settings; training uses one centred window and one hypothesis
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import torch
 from torch import Tensor, nn
 from torch.nn import functional as F
 
+from .._validate import check_int, check_number
 from ..estimator import (
     RotationScale,
     Translation,
@@ -126,10 +128,32 @@ class DPCN(nn.Module):
         spectrum_window_step: float = 0.125,
     ) -> None:
         super().__init__()
+        # Config values by name (they may arrive as strings from the command line).
+        for name, value, low in (
+            ("in_channels", in_channels, 1),
+            ("feature_channels", feature_channels, 1),
+            ("base_channels", base_channels, 1),
+            ("depth", depth, 0),
+            ("rotation_scale_downsample", rotation_scale_downsample, 1),
+            ("rotation_scale_base_channels", rotation_scale_base_channels, 1),
+            ("rotation_scale_depth", rotation_scale_depth, 0),
+            ("n_angles", n_angles, 2),
+            ("n_radii", n_radii, 2),
+            ("window", window, 0),
+        ):
+            if value is not None:
+                check_int(f"model.net.{name}", value, low)
+        for name, value in (("min_radius", min_radius), ("max_radius", max_radius)):
+            check_number(f"model.net.{name}", value, low=0.0, high=1.0, low_open=True)
+        for name, value in (("sigma", sigma), ("rotation_sigma", rotation_sigma)):
+            check_number(f"model.net.{name}", value, low=0.0)
+        for name, value in (("temperature", temperature), ("rotation_temperature", rotation_temperature)):
+            check_number(f"model.net.{name}", value, low=0.0, low_open=True)
+        if image_size is not None:
+            if not isinstance(image_size, Sequence) or isinstance(image_size, str) or len(image_size) != 2:
+                raise ValueError(f"image_size must be an (H, W) pair of integers, got {image_size!r}")
+            image_size = [check_int("image_size", v, low=8 * int(rotation_scale_downsample)) for v in image_size]
         log_polar_grid(8, 8, n_angles, n_radii, min_radius, max_radius)  # validates the grid
-
-        if not isinstance(rotation_scale_downsample, int) or rotation_scale_downsample < 1:
-            raise ValueError(f"rotation_scale_downsample must be an integer >= 1, got {rotation_scale_downsample!r}")
 
         def unet(width: int, levels: int) -> UNet:
             return UNet(in_channels, feature_channels, width, levels, norm, input_skip, upsample)
@@ -147,15 +171,21 @@ class DPCN(nn.Module):
         self.sigma, self.rotation_sigma = sigma, rotation_sigma
         self.temperature, self.rotation_temperature = temperature, rotation_temperature
         self.window = window
-        self.scale_range = None if scale_range is None else (float(scale_range[0]), float(scale_range[1]))
+        if scale_range is not None:
+            if not isinstance(scale_range, Sequence) or isinstance(scale_range, str) or len(scale_range) != 2:
+                raise ValueError(f"scale_range must be a (low, high) pair, got {scale_range!r}")
+            scale_range = tuple(check_number("scale_range", v, low=0.0, low_open=True) for v in scale_range)
+        self.scale_range = scale_range
         self.rotation_hypotheses = rotation_hypotheses
         window_grid_shifts(8, 8, spectrum_window_grid, spectrum_window_step)  # validates them
         self.spectrum_window_grid = spectrum_window_grid
         self.spectrum_window_step = float(spectrum_window_step)
-        if isinstance(train_temperature, (int, float)):
+        if isinstance(train_temperature, (int, float, str)):
             train_temperature = (train_temperature, train_temperature)
-        if min(train_temperature) <= 0:
-            raise ValueError(f"train_temperature must be positive, got {train_temperature}")
+        if not isinstance(train_temperature, Sequence) or len(train_temperature) != 2:
+            raise ValueError(f"train_temperature must be one number or two, got {train_temperature!r}")
+        for t in train_temperature:
+            check_number("train_temperature", t, low=0.0, low_open=True)
         log_t = torch.tensor([math.log(t) for t in train_temperature], dtype=torch.float32)
         if learnable_temperature:
             self.log_train_temperature = nn.Parameter(log_t)

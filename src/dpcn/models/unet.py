@@ -8,6 +8,8 @@ import torch
 from torch import Tensor, nn
 from torch.nn import functional as F
 
+from .._validate import check_int
+
 __all__ = ["UNet"]
 
 
@@ -95,11 +97,13 @@ class UNet(nn.Module):
         if upsample not in ("bilinear", "nearest"):
             raise ValueError(f"unknown upsample {upsample!r}; choose bilinear or nearest")
         self.upsample = upsample
-        if depth < 0 or base_channels < 1 or in_channels < 1 or out_channels < 1:
-            raise ValueError(
-                f"invalid U-Net size: in_channels={in_channels}, out_channels={out_channels}, "
-                f"base_channels={base_channels}, depth={depth}"
-            )
+        for name, value, low in (
+            ("in_channels", in_channels, 1),
+            ("out_channels", out_channels, 1),
+            ("base_channels", base_channels, 1),
+            ("depth", depth, 0),
+        ):
+            check_int(f"U-Net {name}", value, low)
         widths = [base_channels * 2**i for i in range(depth + 1)]
         self.stem = _block(in_channels, widths[0], norm)
         self.down = nn.ModuleList(_block(widths[i], widths[i + 1], norm) for i in range(depth))

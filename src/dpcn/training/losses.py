@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor, nn
 
+from .._validate import check_number
 from ..ops.soft_argmax import soft_argmax2d
 
 __all__ = [
@@ -121,13 +122,11 @@ class DPCNLoss(nn.Module):
             key: (l1_weight if key.startswith("l1") else kl_weight) if value is None else value
             for key, value in overrides.items()
         }
-        for key, value in {**self.weights, "sigma": sigma}.items():
-            if isinstance(value, bool) or not isinstance(value, (int, float)):
-                raise ValueError(f"loss.{key} must be a number, got {value!r}")
-        if sigma <= 0:
-            raise ValueError(f"loss sigma must be positive, got {sigma}")
+        for key, value in self.weights.items():
+            check_number(f"loss.{key}", value, low=0.0)
+        check_number("loss.sigma", sigma, low=0.0, low_open=True)
         weights = tuple(self.weights.values())
-        if min(weights) < 0 or not any(w > 0 for w in weights):
+        if not any(w > 0 for w in weights):
             raise ValueError(f"loss weights must be >= 0 and not all zero, got {weights}")
         self.sigma = sigma
 

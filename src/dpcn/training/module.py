@@ -10,6 +10,7 @@ import lightning as L
 import torch
 from torch import Tensor
 
+from .._validate import check_int, check_number
 from ..estimator import PhaseCorrelationEstimator, unwarp_rotation_scale
 from ..io import prepare_pair
 from ..metrics import format_table, pose_errors, summarize, thresholds_for, write_csv
@@ -111,16 +112,20 @@ class DPCNModule(_EvaluationMixin, L.LightningModule):
         max_epochs: int | None = None,
     ) -> None:
         super().__init__()
+        check_number("model.lr", lr, low=0.0, low_open=True)
+        check_number("model.weight_decay", weight_decay, low=0.0)
+        check_number("model.teacher_forcing", teacher_forcing, low=0.0, high=1.0)
+        check_int("model.warmup_epochs", warmup_epochs, low=0)
+        check_number("model.translation_fraction", translation_fraction, low=0.0, high=1.0, low_open=True)
+        check_number("model.translation_threshold", translation_threshold, low=0.0, low_open=True)
+        for t in [temperature] if isinstance(temperature, (int, float, str)) else list(temperature):
+            check_number("model.temperature", t, low=0.0, low_open=True)
         self.save_hyperparameters()
         net = dict(net or {})
         net.setdefault("train_temperature", temperature if isinstance(temperature, (int, float)) else list(temperature))
         net.setdefault("learnable_temperature", learnable_temperature)
         self.model = DPCN(**net)
         self.loss = DPCNLoss(**(loss or {}))
-        if not 0.0 <= teacher_forcing <= 1.0:
-            raise ValueError(f"teacher_forcing must be in [0, 1], got {teacher_forcing}")
-        if not 0.0 < translation_fraction <= 1.0:
-            raise ValueError(f"translation_fraction must be in (0, 1], got {translation_fraction}")
         self.translation_threshold = translation_threshold
         self._reset()
 

@@ -1,0 +1,53 @@
+"""Checks of plain settings (numbers from a config file or the command line).
+
+A value such as ``model.lr=abc`` arrives as a string and would otherwise fail deep inside
+torch or Lightning with ``'<=' not supported between 'float' and 'str'``. These checks name
+the setting instead. They sit below every other module (no dpcn imports).
+"""
+
+from __future__ import annotations
+
+import math
+import numbers
+
+__all__ = ["check_int", "check_number"]
+
+
+def check_int(name: str, value: object, low: int | None = None) -> int:
+    """``value`` as an ``int`` (``>= low`` if given); ``ValueError`` naming ``name`` otherwise.
+
+    Python and numpy integers pass; floats (even ``4.0``: sizes and counts are used as
+    given), booleans and strings do not.
+    """
+    bound = "" if low is None else f" >= {low}"
+    ok = isinstance(value, numbers.Integral) and not isinstance(value, bool)
+    if not ok or (low is not None and value < low):
+        raise ValueError(f"{name} must be an integer{bound}, got {value!r}")
+    return int(value)
+
+
+def check_number(
+    name: str,
+    value: object,
+    low: float | None = None,
+    high: float | None = None,
+    low_open: bool = False,
+) -> float:
+    """``value`` as a finite ``float`` in ``[low, high]`` (``(low, high]`` with ``low_open``).
+
+    Raises ``ValueError`` naming ``name`` and the allowed range otherwise.
+    """
+    if low is not None and high is not None:
+        bound = f" in {'(' if low_open else '['}{low:g}, {high:g}]"
+    elif low is not None:
+        bound = f" {'>' if low_open else '>='} {low:g}"
+    else:
+        bound = "" if high is None else f" <= {high:g}"
+    ok = isinstance(value, numbers.Real) and not isinstance(value, bool) and math.isfinite(value)
+    if ok and low is not None:
+        ok = value > low if low_open else value >= low
+    if ok and high is not None:
+        ok = value <= high
+    if not ok:
+        raise ValueError(f"{name} must be a finite number{bound}, got {value!r}")
+    return float(value)

@@ -1,0 +1,90 @@
+"""The checks of plain settings: values pass through, bad ones get an error naming them."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from dpcn._validate import check_int, check_number
+from dpcn.data.datamodule import PairDataModule
+from dpcn.models import DPCN
+from dpcn.training.module import DPCNModule
+
+
+def test_check_int_accepts_python_and_numpy_integers():
+    assert check_int("n", 3) == 3
+    assert check_int("n", np.int64(4), low=4) == 4 and type(check_int("n", np.int64(4))) is int
+
+
+@pytest.mark.parametrize("value", ["3", 2.5, 2.0, True, None, [1], 0])
+def test_check_int_rejects_non_integers_and_values_below_the_bound(value):
+    with pytest.raises(ValueError, match=r"^depth must be an integer >= 1, got "):
+        check_int("depth", value, low=1)
+
+
+def test_check_number_ranges():
+    assert check_number("x", 0, low=0.0) == 0.0
+    assert check_number("x", np.float32(0.5), low=0.0, high=1.0) == 0.5
+    assert check_number("x", 1, low=0.0, high=1.0, low_open=True) == 1.0
+    for value, kwargs, message in [
+        (0.0, dict(low=0.0, low_open=True), "x must be a finite number > 0, got 0.0"),
+        (-1, dict(low=0.0), "x must be a finite number >= 0, got -1"),
+        (1.5, dict(low=0.0, high=1.0), "x must be a finite number in [0, 1], got 1.5"),
+        (0.0, dict(low=0.0, high=1.0, low_open=True), "x must be a finite number in (0, 1], got 0.0"),
+        (2, dict(high=1.0), "x must be a finite number <= 1, got 2"),
+        ("abc", {}, "x must be a finite number, got 'abc'"),
+        (math.nan, {}, "x must be a finite number, got nan"),
+        (math.inf, dict(low=0.0), "x must be a finite number >= 0, got inf"),
+        (False, {}, "x must be a finite number, got False"),
+    ]:
+        with pytest.raises(ValueError) as info:
+            check_number("x", value, **kwargs)
+        assert str(info.value) == message
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        (dict(sigma="abc"), "model.net.sigma must be a finite number >= 0, got 'abc'"),
+        (dict(temperature=0), "model.net.temperature must be a finite number > 0, got 0"),
+        (dict(base_channels="8"), "model.net.base_channels must be an integer >= 1, got '8'"),
+        (dict(n_angles=1), "model.net.n_angles must be an integer >= 2, got 1"),
+        (dict(max_radius=1.5), "model.net.max_radius must be a finite number in (0, 1], got 1.5"),
+        (dict(image_size=(256, "x")), "image_size must be an integer >= 8, got 'x'"),
+        (dict(image_size=256), "image_size must be an (H, W) pair of integers, got 256"),
+        (dict(scale_range=(0.5, "2")), "scale_range must be a finite number > 0, got '2'"),
+        (dict(train_temperature=(0.1, -1.0)), "train_temperature must be a finite number > 0, got -1.0"),
+        (dict(spectrum_window_step="abc"), "spectrum_window_step must be in (0, 0.5)"),
+    ],
+)
+def test_dpcn_settings_are_checked_by_name(kwargs, message):
+    with pytest.raises(ValueError) as info:
+        DPCN(**kwargs)
+    assert message in str(info.value)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        (dict(lr="abc"), "model.lr must be a finite number > 0, got 'abc'"),
+        (dict(weight_decay=-1.0), "model.weight_decay must be a finite number >= 0, got -1.0"),
+        (dict(teacher_forcing=1.5), "model.teacher_forcing must be a finite number in [0, 1], got 1.5"),
+        (dict(warmup_epochs=0.5), "model.warmup_epochs must be an integer >= 0, got 0.5"),
+        (dict(translation_fraction=0), "model.translation_fraction must be a finite number in (0, 1], got 0"),
+        (dict(temperature=[0.1, "abc"]), "model.temperature must be a finite number > 0, got 'abc'"),
+    ],
+)
+def test_training_settings_are_checked_by_name(kwargs, message):
+    net = dict(image_size=(32, 32), base_channels=2, depth=1, n_angles=16, n_radii=16)
+    with pytest.raises(ValueError) as info:
+        DPCNModule(net=net, **kwargs)
+    assert str(info.value) == message
+
+
+def test_data_module_settings_are_checked_by_name():
+    with pytest.raises(ValueError, match=r"^data.batch_size must be an integer >= 1, got 'abc'$"):
+        PairDataModule(dataset=dict, batch_size="abc")
+    with pytest.raises(ValueError, match=r"^data.num_workers must be an integer >= 0, got -1$"):
+        PairDataModule(dataset=dict, num_workers=-1)
