@@ -9,8 +9,9 @@ from __future__ import annotations
 
 import math
 import numbers
+from collections.abc import Sequence
 
-__all__ = ["check_int", "check_number"]
+__all__ = ["check_int", "check_ints", "check_number", "check_sequence"]
 
 
 def check_int(name: str, value: object, low: int | None = None) -> int:
@@ -24,6 +25,21 @@ def check_int(name: str, value: object, low: int | None = None) -> int:
     if not ok or (low is not None and value < low):
         raise ValueError(f"{name} must be an integer{bound}, got {value!r}")
     return int(value)
+
+
+def check_ints(prefix: str, *settings: tuple[str, object, int]) -> None:
+    """:func:`check_int` for each ``(name, value, low)``, named ``prefix + name``; ``None``
+    values (optional settings left unset) are skipped."""
+    for name, value, low in settings:
+        if value is not None:
+            check_int(f"{prefix}{name}", value, low)
+
+
+def check_sequence(name: str, value: object, length: int, what: str) -> None:
+    """``ValueError`` unless ``value`` is a list or tuple (not a string) of ``length`` items;
+    ``what`` describes it in the message (``"an (H, W) pair of integers"``)."""
+    if not isinstance(value, Sequence) or isinstance(value, str) or len(value) != length:
+        raise ValueError(f"{name} must be {what}, got {value!r}")
 
 
 def check_number(

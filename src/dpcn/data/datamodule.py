@@ -9,7 +9,7 @@ import lightning as L
 import torch
 from torch.utils.data import DataLoader, Dataset, Sampler
 
-from .._validate import check_int, check_number
+from .._validate import check_ints, check_number
 
 __all__ = ["EpochBlockSampler", "PairDataModule", "ResumableDataLoader"]
 
@@ -115,15 +115,15 @@ class PairDataModule(L.LightningDataModule):
         **references: Any,
     ) -> None:
         super().__init__()
-        for key, value, low in (
+        check_ints(
+            "data.",
             ("batch_size", batch_size, 1),
             ("epoch_size", epoch_size, 1),
             ("train_length", train_length, 1),
             ("val_length", val_length, 1),
             ("test_length", test_length, 1),
             ("num_workers", num_workers, 0),
-        ):
-            check_int(f"data.{key}", value, low)
+        )
         check_number("data.translation_threshold", translation_threshold, low=0.0, low_open=True)
         self.factory = dataset
         self.lengths = {"train": train_length, "val": val_length, "test": test_length}

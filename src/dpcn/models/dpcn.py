@@ -20,14 +20,13 @@ Both are inference settings; training uses one centred window and one hypothesis
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
 from dataclasses import dataclass
 
 import torch
 from torch import Tensor, nn
 from torch.nn import functional as F
 
-from .._validate import check_int, check_number
+from .._validate import check_int, check_ints, check_number, check_sequence
 from ..estimator import (
     RotationScale,
     Translation,
@@ -129,7 +128,8 @@ class DPCN(nn.Module):
     ) -> None:
         super().__init__()
         # Config values by name (they may arrive as strings from the command line).
-        for name, value, low in (
+        check_ints(
+            "model.net.",
             ("in_channels", in_channels, 1),
             ("feature_channels", feature_channels, 1),
             ("base_channels", base_channels, 1),
@@ -140,9 +140,7 @@ class DPCN(nn.Module):
             ("n_angles", n_angles, 2),
             ("n_radii", n_radii, 2),
             ("window", window, 0),
-        ):
-            if value is not None:
-                check_int(f"model.net.{name}", value, low)
+        )
         for name, value in (("min_radius", min_radius), ("max_radius", max_radius)):
             check_number(f"model.net.{name}", value, low=0.0, high=1.0, low_open=True)
         for name, value in (("sigma", sigma), ("rotation_sigma", rotation_sigma)):
@@ -150,8 +148,7 @@ class DPCN(nn.Module):
         for name, value in (("temperature", temperature), ("rotation_temperature", rotation_temperature)):
             check_number(f"model.net.{name}", value, low=0.0, low_open=True)
         if image_size is not None:
-            if not isinstance(image_size, Sequence) or isinstance(image_size, str) or len(image_size) != 2:
-                raise ValueError(f"image_size must be an (H, W) pair of integers, got {image_size!r}")
+            check_sequence("image_size", image_size, 2, "an (H, W) pair of integers")
             image_size = [check_int("image_size", v, low=8 * int(rotation_scale_downsample)) for v in image_size]
         log_polar_grid(8, 8, n_angles, n_radii, min_radius, max_radius)  # validates the grid
 
@@ -172,8 +169,7 @@ class DPCN(nn.Module):
         self.temperature, self.rotation_temperature = temperature, rotation_temperature
         self.window = window
         if scale_range is not None:
-            if not isinstance(scale_range, Sequence) or isinstance(scale_range, str) or len(scale_range) != 2:
-                raise ValueError(f"scale_range must be a (low, high) pair, got {scale_range!r}")
+            check_sequence("scale_range", scale_range, 2, "a (low, high) pair")
             scale_range = tuple(check_number("scale_range", v, low=0.0, low_open=True) for v in scale_range)
         self.scale_range = scale_range
         self.rotation_hypotheses = rotation_hypotheses
@@ -182,8 +178,7 @@ class DPCN(nn.Module):
         self.spectrum_window_step = float(spectrum_window_step)
         if isinstance(train_temperature, (int, float, str)):
             train_temperature = (train_temperature, train_temperature)
-        if not isinstance(train_temperature, Sequence) or len(train_temperature) != 2:
-            raise ValueError(f"train_temperature must be one number or two, got {train_temperature!r}")
+        check_sequence("train_temperature", train_temperature, 2, "one number or two")
         for t in train_temperature:
             check_number("train_temperature", t, low=0.0, low_open=True)
         log_t = torch.tensor([math.log(t) for t in train_temperature], dtype=torch.float32)

@@ -8,7 +8,7 @@ import torch
 from torch import Tensor, nn
 from torch.nn import functional as F
 
-from .._validate import check_int
+from .._validate import check_ints
 
 __all__ = ["UNet"]
 
@@ -97,13 +97,13 @@ class UNet(nn.Module):
         if upsample not in ("bilinear", "nearest"):
             raise ValueError(f"unknown upsample {upsample!r}; choose bilinear or nearest")
         self.upsample = upsample
-        for name, value, low in (
+        check_ints(
+            "U-Net ",
             ("in_channels", in_channels, 1),
             ("out_channels", out_channels, 1),
             ("base_channels", base_channels, 1),
             ("depth", depth, 0),
-        ):
-            check_int(f"U-Net {name}", value, low)
+        )
         widths = [base_channels * 2**i for i in range(depth + 1)]
         self.stem = _block(in_channels, widths[0], norm)
         self.down = nn.ModuleList(_block(widths[i], widths[i + 1], norm) for i in range(depth))
