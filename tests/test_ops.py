@@ -5,6 +5,7 @@ import math
 import pytest
 import torch
 from torch.autograd import gradcheck
+from torch.nn import functional as F
 
 from dpcn.ops import (
     LogPolar,
@@ -138,6 +139,24 @@ class TestLogPolar:
     def test_gradcheck(self):
         spec = f64(1, 2, 10, 12).requires_grad_()
         assert gradcheck(lambda s: log_polar(s, 6, 5), (spec,))
+
+    def test_matches_grid_sample_at_the_pixel_grid(self):
+        # Independent reference: torch's grid_sample at log_polar_grid's pixel coordinates,
+        # per batch element; the cached normalised grid must give the same samples.
+        spec = torch.rand(3, 2, 20, 11, dtype=torch.float64)
+        map_x, map_y = log_polar_grid(20, 20, 12, 9, half=True, dtype=torch.float64)
+        grid = torch.stack([map_x * 2 / 10 - 1, map_y * 2 / 19 - 1], dim=-1)[None].expand(3, -1, -1, -1)
+        expected = F.grid_sample(spec, grid, mode="bilinear", padding_mode="zeros", align_corners=True)
+        torch.testing.assert_close(log_polar(spec, 12, 9, half=True, width=20), expected)
+
+    def test_grid_first_built_under_inference_mode_still_trains(self):
+        # Validation (inference mode) often runs before training and builds the cached grid
+        # first; a backward pass through it afterwards must still work.
+        with torch.inference_mode():
+            log_polar(torch.rand(1, 1, 14, 8), 7, 6, half=True, width=14)
+        spec = torch.rand(1, 1, 14, 8, requires_grad=True)
+        log_polar(spec, 7, 6, half=True, width=14).sum().backward()
+        assert spec.grad is not None and spec.grad.abs().sum() > 0
 
 
 # ----------------------------------------------------------------------------- correlation

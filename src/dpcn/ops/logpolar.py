@@ -8,6 +8,7 @@ phase correlation (the Fourier-Mellin trick).
 from __future__ import annotations
 
 import math
+from functools import lru_cache
 
 import kornia
 import torch
@@ -88,17 +89,38 @@ def log_polar(
             raise ValueError(f"a half spectrum with {columns} columns needs the image width (got width={width})")
     else:
         width = columns
-    map_x, map_y = log_polar_grid(
-        height, width, n_angles, n_radii, min_radius, max_radius, spectrum.device, spectrum.dtype, half
+    map_x, map_y = _normalized_grid(
+        height, width, columns, n_angles, n_radii, min_radius, max_radius, spectrum.device, spectrum.dtype, half
     )
+    # One (1, n_angles, n_radii) grid broadcast over the batch: no per-call copies.
     return kornia.geometry.transform.remap(
-        spectrum,
-        map_x.expand(batch, -1, -1),
-        map_y.expand(batch, -1, -1),
-        mode="bilinear",
-        padding_mode="zeros",
-        align_corners=True,
+        spectrum, map_x, map_y, mode="bilinear", padding_mode="zeros", align_corners=True, normalized_coordinates=True
     )
+
+
+@lru_cache(maxsize=32)
+def _normalized_grid(
+    height: int,
+    width: int,
+    columns: int,
+    n_angles: int,
+    n_radii: int,
+    min_radius: float,
+    max_radius: float,
+    device: torch.device,
+    dtype: torch.dtype,
+    half: bool,
+) -> tuple[Tensor, Tensor]:
+    """:func:`log_polar_grid` in grid-sample coordinates (``[-1, 1]``, corners aligned) for a
+    spectrum of ``columns`` columns, ``(1, n_angles, n_radii)`` each; cached, since every
+    call of a model uses the same few grids."""
+    # Normal tensors even when first called under inference mode (a validation before
+    # training): grid sampling saves its grid for the backward pass.
+    with torch.inference_mode(False), torch.no_grad():
+        map_x, map_y = log_polar_grid(height, width, n_angles, n_radii, min_radius, max_radius, device, dtype, half)
+        map_x = map_x * (2.0 / max(columns - 1, 1)) - 1.0
+        map_y = map_y * (2.0 / max(height - 1, 1)) - 1.0
+    return map_x[None], map_y[None]
 
 
 class LogPolar(nn.Module):
