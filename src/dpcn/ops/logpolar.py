@@ -83,7 +83,7 @@ def log_polar(
     rows (circularly); a scaling by ``s`` shifts it by ``-ln(s) / log_radius_step`` columns.
     """
     check_image(spectrum, "spectrum")
-    batch, _, height, columns = spectrum.shape
+    _, _, height, columns = spectrum.shape
     if half:
         if width is None or width // 2 + 1 != columns:
             raise ValueError(f"a half spectrum with {columns} columns needs the image width (got width={width})")
