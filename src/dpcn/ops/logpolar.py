@@ -117,10 +117,11 @@ def _normalized_grid(
     # Normal tensors even when first called under inference mode (a validation before
     # training): grid sampling saves its grid for the backward pass.
     with torch.inference_mode(False), torch.no_grad():
-        map_x, map_y = log_polar_grid(height, width, n_angles, n_radii, min_radius, max_radius, device, dtype, half)
-        map_x = map_x * (2.0 / max(columns - 1, 1)) - 1.0
-        map_y = map_y * (2.0 / max(height - 1, 1)) - 1.0
-    return map_x[None], map_y[None]
+        pixels = torch.stack(
+            log_polar_grid(height, width, n_angles, n_radii, min_radius, max_radius, device, dtype, half), dim=-1
+        )
+        normalized = kornia.geometry.conversions.normalize_pixel_coordinates(pixels, height, columns)
+    return normalized[None, ..., 0], normalized[None, ..., 1]
 
 
 class LogPolar(nn.Module):
