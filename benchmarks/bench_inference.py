@@ -32,6 +32,7 @@ TIMED_SETTINGS = (  # the preset's architecture and its cost-bearing inference s
     "input_skip",
     "upsample",
     "rotation_scale_downsample",
+    "rotation_scale_pooling",
     "rotation_scale_base_channels",
     "rotation_scale_depth",
     "n_angles",

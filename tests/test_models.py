@@ -160,6 +160,53 @@ def test_phase1_downsample_and_width_options_shape_the_phase1_unets():
         tiny_images.match(torch.rand(1, 1, 16, 16), torch.rand(1, 1, 16, 16))
 
 
+@pytest.mark.parametrize("size", [(32, 32), (33, 30)])
+def test_phase1_space_to_depth_keeps_every_pixel_at_half_resolution(size):
+    model = small_dpcn(image_size=None, rotation_scale_downsample=2, rotation_scale_pooling="space_to_depth").eval()
+    assert model.rs_template.stem[0].in_channels == 4 and model.rs_source.stem[0].in_channels == 4
+    assert model.t_template.stem[0].in_channels == 1  # phase 2 is unchanged
+    image = torch.rand(2, 1, *size)
+    blocks = model.rotation_scale_unet_input(image)
+    h, w = -(-size[0] // 2), -(-size[1] // 2)
+    assert blocks.shape == (2, 4, h, w)
+    # channel 2 * i + j holds pixel (i, j) of each 2 x 2 block; odd edges repeat the last row/column
+    padded = torch.nn.functional.pad(image, (0, 2 * w - size[1], 0, 2 * h - size[0]), mode="replicate")
+    for i in range(2):
+        for j in range(2):
+            torch.testing.assert_close(blocks[:, 2 * i + j], padded[:, 0, i::2, j::2])
+    # its block mean is the box average the default pooling (and the ceiling benchmark's maps) use
+    if size[0] % 2 == 0 and size[1] % 2 == 0:
+        torch.testing.assert_close(blocks.mean(dim=1, keepdim=True), model.rotation_scale_input(image))
+    out = model(image, image.flip(-1))
+    assert out.features["rs_template"].shape == (2, 1, h, w)
+    assert out.rotation_scale.surface.shape == (2, 32, 32)
+    # three channels: every colour channel's blocks
+    colour = small_dpcn(in_channels=3, rotation_scale_downsample=2, rotation_scale_pooling="space_to_depth")
+    assert colour.rs_template.stem[0].in_channels == 12
+    assert colour.rotation_scale_unet_input(torch.rand(1, 3, 32, 32)).shape == (1, 12, 16, 16)
+
+
+def test_phase1_pooling_is_validated_and_average_by_default():
+    assert small_dpcn().rotation_scale_pooling == "average"
+    with pytest.raises(ValueError, match="rotation_scale_pooling must be one of average, space_to_depth, got 'max'"):
+        small_dpcn(rotation_scale_downsample=2, rotation_scale_pooling="max")
+    # without down-sampling there is nothing to pool: the U-Nets take the image as it is
+    same = small_dpcn(rotation_scale_pooling="space_to_depth")
+    image = torch.rand(1, 1, 32, 32)
+    assert same.rs_template.stem[0].in_channels == 1
+    torch.testing.assert_close(same.rotation_scale_unet_input(image), image)
+
+
+def test_gradcheck_phase1_space_to_depth_features():
+    # The pooling is the only new step (the end-to-end gradchecks cover the rest of the pipeline).
+    torch.manual_seed(0)
+    model = small_dpcn(image_size=None, rotation_scale_downsample=2, rotation_scale_pooling="space_to_depth")
+    model = model.double().eval()
+    image = torch.rand(1, 1, 17, 16, dtype=torch.float64, requires_grad=True)
+    assert gradcheck(model.rotation_scale_unet_input, (image,))
+    assert gradcheck(lambda x: model.rs_template(model.rotation_scale_unet_input(x)), (image,), eps=1e-6, atol=1e-5)
+
+
 def test_phase1_at_half_resolution_recovers_an_opencv_pose():
     # With input_skip an untrained DPCN is classical phase correlation (on softplus images),
     # so this checks the half-resolution phase 1 against OpenCV's warp, on a real photograph.

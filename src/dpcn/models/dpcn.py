@@ -40,7 +40,9 @@ from ..ops.logpolar import log_polar_grid, log_radius_step
 from ..pose import Pose, wrap_angle
 from .unet import UNet
 
-__all__ = ["DPCN", "DPCNOutput", "half_turn"]
+__all__ = ["DPCN", "DPCNOutput", "ROTATION_SCALE_POOLING", "half_turn"]
+
+ROTATION_SCALE_POOLING = ("average", "space_to_depth")
 
 
 def half_turn(image: Tensor) -> Tensor:
@@ -70,10 +72,14 @@ class DPCN(nn.Module):
             :class:`~dpcn.models.unet.UNet`); presets: ``tiny`` (4, 3; phase 1: 8, 4 at half size), ``paper`` (32, 4).
         norm, input_skip, upsample: U-Net normalisation, input skip and decoder upsampling
             (see :class:`~dpcn.models.unet.UNet`).
-        rotation_scale_downsample: phase 1 runs its U-Nets on the images shrunk by this
-            integer factor (a d x d box average). Rotation and scale survive the shrinking, and
-            at half size a U-Net sees twice the context for a quarter of the cost; phase 2
+        rotation_scale_downsample: phase 1 runs its U-Nets at ``1 / d`` of the image size for
+            this integer factor ``d``. Rotation and scale survive the shrinking, and at half
+            size a U-Net sees twice the context for a quarter of the cost; phase 2
             (translation, which needs every pixel) always runs at full size.
+        rotation_scale_pooling: how phase 1 shrinks its input: ``average`` (a d x d box
+            average) or ``space_to_depth`` (each d x d block becomes ``d * d`` channels, as
+            ``torch.nn.functional.pixel_unshuffle``: the same resolution and nearly the same
+            cost, but fine texture that averaging would erase still reaches the U-Net).
         rotation_scale_base_channels, rotation_scale_depth: width and depth of the phase-1
             U-Nets (``None``: ``base_channels`` / ``depth``).
         image_size: ``(H, W)`` the model is built for; other sizes raise a clear error
@@ -106,6 +112,7 @@ class DPCN(nn.Module):
         input_skip: bool = False,
         upsample: str = "bilinear",
         rotation_scale_downsample: int = 1,
+        rotation_scale_pooling: str = "average",
         rotation_scale_base_channels: int | None = None,
         rotation_scale_depth: int | None = None,
         image_size: tuple[int, int] | list[int] | None = (256, 256),
@@ -151,15 +158,23 @@ class DPCN(nn.Module):
             check_sequence("image_size", image_size, 2, "an (H, W) pair of integers")
             image_size = [check_int("image_size", v, low=8 * int(rotation_scale_downsample)) for v in image_size]
         log_polar_grid(8, 8, n_angles, n_radii, min_radius, max_radius)  # validates the grid
+        if rotation_scale_pooling not in ROTATION_SCALE_POOLING:
+            raise ValueError(
+                f"model.net.rotation_scale_pooling must be one of {', '.join(ROTATION_SCALE_POOLING)}, "
+                f"got {rotation_scale_pooling!r}"
+            )
 
-        def unet(width: int, levels: int) -> UNet:
-            return UNet(in_channels, feature_channels, width, levels, norm, input_skip, upsample)
+        def unet(channels: int, width: int, levels: int) -> UNet:
+            return UNet(channels, feature_channels, width, levels, norm, input_skip, upsample)
 
         rs_width = base_channels if rotation_scale_base_channels is None else rotation_scale_base_channels
         rs_levels = depth if rotation_scale_depth is None else rotation_scale_depth
-        self.rs_template, self.rs_source = unet(rs_width, rs_levels), unet(rs_width, rs_levels)
-        self.t_template, self.t_source = unet(base_channels, depth), unet(base_channels, depth)
+        rs_channels = in_channels * (rotation_scale_downsample**2 if rotation_scale_pooling == "space_to_depth" else 1)
+        self.rs_template = unet(rs_channels, rs_width, rs_levels)
+        self.rs_source = unet(rs_channels, rs_width, rs_levels)
+        self.t_template, self.t_source = unet(in_channels, base_channels, depth), unet(in_channels, base_channels, depth)
         self.rotation_scale_downsample = rotation_scale_downsample
+        self.rotation_scale_pooling = rotation_scale_pooling
         self.in_channels = in_channels
         self.image_size = None if image_size is None else (int(image_size[0]), int(image_size[1]))
         self.n_angles, self.n_radii = n_angles, n_radii
@@ -237,9 +252,22 @@ class DPCN(nn.Module):
 
     # ------------------------------------------------------------------ phases
     def rotation_scale_input(self, image: Tensor) -> Tensor:
-        """An image (or any map) shrunk as phase 1 sees it: ``(B, C, H / d, W / d)``."""
+        """An image (or any map) shrunk to phase 1's resolution by a box average:
+        ``(B, C, ceil(H / d), ceil(W / d))``."""
         d = self.rotation_scale_downsample
         return F.avg_pool2d(image, d, ceil_mode=True) if d > 1 else image
+
+    def rotation_scale_unet_input(self, image: Tensor) -> Tensor:
+        """What the phase-1 U-Nets take: ``(B, C, H, W)`` shrunk by ``rotation_scale_pooling``
+        to ``(B, C', ceil(H / d), ceil(W / d))``, ``C' = C`` (average) or ``C * d * d``
+        (space to depth; edge rows/columns repeated up to a multiple of ``d``)."""
+        d = self.rotation_scale_downsample
+        if d == 1 or self.rotation_scale_pooling == "average":
+            return self.rotation_scale_input(image)
+        pad_h, pad_w = -image.shape[-2] % d, -image.shape[-1] % d
+        if pad_h or pad_w:
+            image = F.pad(image, (0, pad_w, 0, pad_h), mode="replicate")
+        return F.pixel_unshuffle(image, d)
 
     def rotation_scale(
         self, template: Tensor, source: Tensor, hypotheses: int = 1, window_grid: int = 1
@@ -251,8 +279,8 @@ class DPCN(nn.Module):
         The features are ``(B, C, H / d, W / d)`` with ``d = rotation_scale_downsample``.
         """
         features = {
-            "rs_template": self.rs_template(self.rotation_scale_input(template)),
-            "rs_source": self.rs_source(self.rotation_scale_input(source)),
+            "rs_template": self.rs_template(self.rotation_scale_unet_input(template)),
+            "rs_source": self.rs_source(self.rotation_scale_unet_input(source)),
         }
         rs = self.rotation_scale_from_features(features["rs_template"], features["rs_source"], hypotheses, window_grid)
         return rs, features
