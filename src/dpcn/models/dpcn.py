@@ -172,7 +172,8 @@ class DPCN(nn.Module):
         rs_channels = in_channels * (rotation_scale_downsample**2 if rotation_scale_pooling == "space_to_depth" else 1)
         self.rs_template = unet(rs_channels, rs_width, rs_levels)
         self.rs_source = unet(rs_channels, rs_width, rs_levels)
-        self.t_template, self.t_source = unet(in_channels, base_channels, depth), unet(in_channels, base_channels, depth)
+        self.t_template = unet(in_channels, base_channels, depth)
+        self.t_source = unet(in_channels, base_channels, depth)
         self.rotation_scale_downsample = rotation_scale_downsample
         self.rotation_scale_pooling = rotation_scale_pooling
         self.in_channels = in_channels
