@@ -236,17 +236,29 @@ def test_ddp_with_two_cpu_processes(tmp_path):
     assert ckpt["global_step"] == 1
 
 
-@pytest.mark.parametrize(("preset", "downsample", "width", "depth"), [("tiny", 2, 8, 4), ("tiny_full", 1, 4, 3)])
-def test_model_presets_compose_and_build(preset, downsample, width, depth):
+@pytest.mark.parametrize(
+    ("preset", "downsample", "inputs", "width", "depth"), [("tiny", 2, 1, 8, 4), ("tiny_full", 1, 1, 4, 3)]
+)
+def test_model_presets_compose_and_build(preset, downsample, inputs, width, depth):
     from hydra.utils import instantiate
 
     cfg = compose_config(f"model={preset}")
     module = instantiate(cfg.model, _convert_="all")
     net = module.model
     assert net.rotation_scale_downsample == downsample
+    assert net.rs_template.stem[0].in_channels == inputs  # box-averaged input (rotation_scale_pooling)
     assert net.rs_template.stem[0].out_channels == width and net.rs_template.depth == depth
     assert net.t_template.stem[0].out_channels == 4 and net.t_template.depth == 3
     assert net.image_size == (256, 256)
+
+
+def test_phase1_pooling_is_a_config_override():
+    from hydra.utils import instantiate
+
+    cfg = compose_config("model.net.rotation_scale_pooling=space_to_depth")
+    net = instantiate(cfg.model, _convert_="all").model
+    assert net.rotation_scale_pooling == "space_to_depth"
+    assert net.rs_template.stem[0].in_channels == 4 and net.t_template.stem[0].in_channels == 1
 
 
 @pytest.mark.parametrize(
