@@ -131,4 +131,21 @@ def test_loss_configs_take_per_term_overrides(choice, expected):
     """Every loss config composes from the real conf/ with per-term weight overrides (no ``+``)."""
     cfg = compose_config(f"loss={choice}", "loss.l1_rotation=0.1", "loss.kl_translation=3")
     loss = DPCNLoss(**instantiate(cfg.loss))
-    assert loss.weights == pytest.approx(expected)
+    assert loss.weights == pytest.approx({**expected, "kl_align": 0.0})  # the extra term stays off
+
+
+def test_alignment_term_is_off_by_default_and_needs_its_surface():
+    surface = torch.randn(2, 8, 8, dtype=torch.float64)
+    centre = torch.tensor([[1.0, 2.0], [5.5, 6.5]], dtype=torch.float64)
+    temperatures = torch.tensor([0.1, 0.1], dtype=torch.float64)
+    assert DPCNLoss().weights["kl_align"] == 0.0
+    loss = DPCNLoss(kl_align=0.5)
+    with pytest.raises(ValueError, match="kl_align > 0 needs the phase-1 alignment surface"):
+        loss(surface, centre, surface, centre, temperatures)
+    out = loss(surface, centre, surface, centre, temperatures, surface, centre)
+    expected = one_peak_kl(surface, centre, 0.1, 1.5, (True, True)).mean()
+    torch.testing.assert_close(out.terms["kl_align"], expected)
+    without = DPCNLoss()(surface, centre, surface, centre, temperatures)
+    torch.testing.assert_close(out.total, without.total + 0.5 * expected)
+    with pytest.raises(ValueError, match=r"loss\.kl_align must be a finite number >= 0"):
+        DPCNLoss(kl_align=-1.0)

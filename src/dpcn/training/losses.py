@@ -97,6 +97,12 @@ class DPCNLoss(nn.Module):
         l1_rotation, l1_scale, l1_translation, kl_rotation_scale, kl_translation: per-term
             weights overriding those defaults (``None``: the default).
         sigma: width (bins) of the Gaussian one-peak target.
+        kl_align: weight of an extra one-peak KL term on phase 1's *features* (0: off, the
+            paper's loss): the source's phase-1 features, un-warped by the true rotation and
+            scale, phase-correlated with the template's in space; the target is the true
+            shift. The paper's phase-1 loss reaches the features only through their
+            magnitude spectra, which discard where structures are; this term asks the two
+            extractors directly for maps that coincide where the images share geometry.
     """
 
     def __init__(
@@ -109,6 +115,7 @@ class DPCNLoss(nn.Module):
         l1_translation: float | None = None,
         kl_rotation_scale: float | None = None,
         kl_translation: float | None = None,
+        kl_align: float = 0.0,
     ) -> None:
         super().__init__()
         overrides = dict(
@@ -122,6 +129,7 @@ class DPCNLoss(nn.Module):
             key: (l1_weight if key.startswith("l1") else kl_weight) if value is None else value
             for key, value in overrides.items()
         }
+        self.weights["kl_align"] = kl_align
         for key, value in self.weights.items():
             check_number(f"loss.{key}", value, low=0.0)
         check_number("loss.sigma", sigma, low=0.0, low_open=True)
@@ -137,7 +145,12 @@ class DPCNLoss(nn.Module):
         t_surface: Tensor,
         t_centre: Tensor,
         temperatures: Tensor,
+        align_surface: Tensor | None = None,
+        align_centre: Tensor | None = None,
     ) -> LossTerms:
+        """Surfaces ``(B, H, W)`` with their true peaks ``(B, 2)`` (row, col); ``temperatures``
+        ``(2,)`` (phase 1, phase 2; the alignment term uses phase 2's). The alignment surface
+        is needed when ``kl_align > 0``."""
         t_rs, t_tr = temperatures[0], temperatures[1]
         terms: dict[str, Tensor] = {}
         if self.weights["l1_rotation"] or self.weights["l1_scale"]:
@@ -150,6 +163,10 @@ class DPCNLoss(nn.Module):
             terms["kl_rotation_scale"] = one_peak_kl(rs_surface, rs_centre, t_rs, self.sigma, (True, False)).mean()
         if self.weights["kl_translation"]:
             terms["kl_translation"] = one_peak_kl(t_surface, t_centre, t_tr, self.sigma, (True, True)).mean()
+        if self.weights["kl_align"]:
+            if align_surface is None or align_centre is None:
+                raise ValueError("loss.kl_align > 0 needs the phase-1 alignment surface and its true peak")
+            terms["kl_align"] = one_peak_kl(align_surface, align_centre, t_tr, self.sigma, (True, True)).mean()
         total = sum(self.weights[k] * v for k, v in terms.items() if self.weights[k])
         if not isinstance(total, Tensor) or not math.isfinite(float(total.detach())):
             raise FloatingPointError(f"non-finite training loss: { {k: float(v) for k, v in terms.items()} }")

@@ -11,7 +11,7 @@ import torch
 from torch import Tensor
 
 from .._validate import check_int, check_number
-from ..estimator import PhaseCorrelationEstimator, unwarp_rotation_scale
+from ..estimator import PhaseCorrelationEstimator, estimate_translation, unwarp_rotation_scale
 from ..io import prepare_pair
 from ..metrics import format_table, pose_errors, summarize, thresholds_for, write_csv
 from ..models.dpcn import DPCN
@@ -157,7 +157,8 @@ class DPCNModule(_EvaluationMixin, L.LightningModule):
 
     def _training_loss(self, template: Tensor, source: Tensor, gt: Tensor) -> Tensor:
         tx, ty, angle, scale = gt.unbind(dim=1)
-        rs, _ = self.model.rotation_scale(template, source)
+        rs, rs_features = self.model.rotation_scale(template, source)
+        align = self._alignment(rs_features, gt) if self.loss.weights["kl_align"] else (None, None)
 
         # Phase 1's angle is known modulo 180 degrees; take the half-turn closest to the truth
         # so phase 2 learns on upright sources (the half-turn is settled at inference).
@@ -176,7 +177,7 @@ class DPCNModule(_EvaluationMixin, L.LightningModule):
         m = self.model
         rs_centre = rotation_scale_target(angle, scale, m.n_angles, m.n_radii, m.radius_step)
         t_centre = translation_target(tx, ty, unwarp_angle.detach(), unwarp_scale.detach(), template.shape[-2:])
-        loss = self.loss(rs.surface, rs_centre, tr.surface, t_centre, m.train_temperature)
+        loss = self.loss(rs.surface, rs_centre, tr.surface, t_centre, m.train_temperature, *align)
         batch_size = template.shape[0]
         self.log("train/loss", loss.total, prog_bar=True, batch_size=batch_size)
         for name, value in loss.terms.items():
@@ -184,6 +185,19 @@ class DPCNModule(_EvaluationMixin, L.LightningModule):
         self.log("train/temperature_rs", m.train_temperature[0], batch_size=batch_size)
         self.log("train/temperature_t", m.train_temperature[1], batch_size=batch_size)
         return loss.total
+
+    def _alignment(self, features: dict[str, Tensor], gt: Tensor) -> tuple[Tensor, Tensor]:
+        """Phase 1's features compared in space (``loss.kl_align``): the source features
+        un-warped by the true rotation/scale, phase-correlated with the template features;
+        ``(B, h, w)`` surface and ``(B, 2)`` true peak, at phase 1's resolution."""
+        tx, ty, angle, scale = gt.unbind(dim=1)
+        template, source = features["rs_template"], features["rs_source"]
+        d = self.model.rotation_scale_downsample
+        unwarped = unwarp_rotation_scale(source, angle, scale)
+        surface = estimate_translation(
+            template, unwarped, angle, scale, resolve_180=False, sigma=self.model.sigma / d
+        ).surface
+        return surface, translation_target(tx / d, ty / d, angle, scale, template.shape[-2:])
 
     def configure_optimizers(self):
         optimizer = torch.optim.AdamW(self.parameters(), lr=self.hparams.lr, weight_decay=self.hparams.weight_decay)
