@@ -98,3 +98,16 @@ def test_alignment_term_trains_both_phase1_extractors():
     for net in (only.model.rs_template, only.model.rs_source):
         assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in net.parameters())
     assert all(p.grad is None or p.grad.abs().sum() == 0 for p in only.model.t_source.parameters())
+
+
+def test_gradcheck_alignment_surface():
+    module = DPCNModule(net=dict(NET, image_size=(16, 16))).double()
+    gt = torch.tensor([[1.5, -2.0, 35.0, 1.1]], dtype=torch.float64)
+    torch.manual_seed(0)
+    template = torch.rand(1, 2, 8, 8, dtype=torch.float64, requires_grad=True)
+    source = torch.rand(1, 2, 8, 8, dtype=torch.float64, requires_grad=True)
+
+    def surface(t: torch.Tensor, s: torch.Tensor) -> torch.Tensor:
+        return module._alignment({"rs_template": t, "rs_source": s}, gt)[0]
+
+    assert torch.autograd.gradcheck(surface, (template, source))
