@@ -6,7 +6,7 @@ the median of several timed rounds after a warm-up. Weights are random unless --
 the cost does not depend on them.
 
     python benchmarks/bench_inference.py [--device cpu|cuda] [--threads 2] [--batch 32] [--ckpt last.ckpt]
-        [--window-grids 1,3] [--hypotheses 1,3]   # also time other stage-1 inference settings
+        [--window-grids 1,3] [--hypotheses 1,3] [--views 1,2,8]   # also time other stage-1 inference settings
 """
 
 from __future__ import annotations
@@ -40,6 +40,7 @@ TIMED_SETTINGS = (  # the preset's architecture and its cost-bearing inference s
     "rotation_hypotheses",
     "spectrum_window_grid",
     "spectrum_window_step",
+    "rotation_views",
 )
 
 
@@ -77,6 +78,7 @@ def main() -> None:
     parser.add_argument("--ckpt", default=None, help="time this checkpoint instead of randomly initialised presets")
     parser.add_argument("--hypotheses", default=None, help="comma-separated rotation_hypotheses values to time")
     parser.add_argument("--window-grids", default=None, help="comma-separated spectrum_window_grid values to time")
+    parser.add_argument("--views", default=None, help="comma-separated rotation_views values to time")
     parser.add_argument("--bf16", action="store_true", help="autocast the U-Nets to bfloat16 (GPU)")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
@@ -95,6 +97,7 @@ def main() -> None:
     for option, values, short in (
         ("spectrum_window_grid", args.window_grids, "grid"),
         ("rotation_hypotheses", args.hypotheses, "K"),
+        ("rotation_views", args.views, "views"),
     ):
         if values:  # one copy per value, same weights
             for label, model in list(models.items()):

@@ -6,7 +6,9 @@ import torch
 from torch.autograd import gradcheck
 
 from dpcn.estimator import (
+    DIHEDRAL_VIEWS,
     PhaseCorrelationEstimator,
+    dihedral_views,
     estimate_rotation_scale,
     estimate_translation,
     unwarp_rotation_scale,
@@ -273,3 +275,59 @@ def test_classical_estimator_with_a_window_grid_recovers_opencv_poses():
         (16, 12),
     ]
     assert window_grid_shifts(128, 96, 1) == [(0, 0)]
+
+
+def test_dihedral_views_of_an_opencv_pair_agree_on_the_pose():
+    # Raw images: every view's magnitude spectrum is the turned/mirrored original, so once the
+    # mirrored views' angle axes are flipped back all eight surfaces must peak at the true pose.
+    image = photo("camera", (128, 128))
+    poses = [(10.0, -6.0, 37.0, 1.12), (-8.0, 12.0, -120.0, 0.88)]
+    t = torch.from_numpy(np.stack([image, image]))[:, None]
+    s = torch.from_numpy(np.stack([cv2_warp(image, *p) for p in poses]))[:, None]
+    views = dihedral_views(t, 8)
+    assert views.shape == (16, 1, 128, 128)
+    for v, (turns, mirror) in enumerate(DIHEDRAL_VIEWS):
+        expected = torch.rot90(t, turns, dims=(-2, -1))
+        torch.testing.assert_close(views[2 * v : 2 * v + 2], expected.flip(-1) if mirror else expected)
+    plain = estimate_rotation_scale(t, s)
+    merged = estimate_rotation_scale(views, dihedral_views(s, 8), views=8)
+    assert merged.surface.shape == plain.surface.shape and merged.log_polar_template.shape[0] == 2
+    for v in range(8):  # each view alone, on the first view's angle axis, peaks where the plain one does
+        one = estimate_rotation_scale(views[2 * v : 2 * v + 2], dihedral_views(s, 8)[2 * v : 2 * v + 2])
+        angle = one.angle if not DIHEDRAL_VIEWS[v][1] else -one.angle
+        assert all(angle_error(a, b) < 0.5 for a, b in zip(angle, plain.angle, strict=True))
+    for i, (_, _, angle, scale) in enumerate(poses):
+        assert angle_error(merged.angle[i], angle) < 0.5 or angle_error(merged.angle[i], angle + 180.0) < 0.5
+        assert abs(float(merged.scale[i]) / scale - 1) < 0.01
+    # views=1 is the plain estimate; a merged surface is the mean of the aligned views
+    torch.testing.assert_close(estimate_rotation_scale(t, s, views=1).surface, plain.surface)
+    mirrored = estimate_rotation_scale(views[2:4], dihedral_views(s, 2)[2:4]).surface
+    two = estimate_rotation_scale(views[:4], dihedral_views(s, 2), views=2).surface
+    torch.testing.assert_close(two, (plain.surface + torch.roll(mirrored.flip(1), 1, dims=1)) / 2)
+
+
+def test_dihedral_views_reject_bad_counts_and_shapes():
+    square, wide = torch.rand(2, 1, 32, 32), torch.rand(2, 1, 32, 48)
+    for bad in (0, 9, True, 2.0, "2"):
+        with pytest.raises(ValueError, match="rotation_views must be an integer from 1 to 8"):
+            dihedral_views(square, bad)
+    assert dihedral_views(wide, 2).shape == (4, 1, 32, 48)  # a mirror keeps the shape
+    with pytest.raises(ValueError, match="needs square images, got 32x48"):
+        dihedral_views(wide, 4)
+    with pytest.raises(ValueError, match="3 maps are not 2 views of whole pairs"):
+        estimate_rotation_scale(torch.rand(3, 1, 32, 32), torch.rand(3, 1, 32, 32), views=2)
+
+
+def test_gradcheck_rotation_scale_stage_with_views():
+    a, b = _small_images()
+    fn = lambda x, y: torch.stack(  # noqa: E731
+        [
+            (
+                r := estimate_rotation_scale(
+                    dihedral_views(x, 4), dihedral_views(y, 4), n_angles=16, n_radii=12, window=2, views=4
+                )
+            ).angle,
+            r.scale,
+        ]
+    )
+    assert gradcheck(fn, (a, b), eps=1e-6, atol=1e-4)

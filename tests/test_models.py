@@ -294,6 +294,26 @@ def test_spectrum_window_grid_shifts_and_validation():
         small_dpcn(spectrum_window_step=0.6)
 
 
+def test_rotation_views_validation_and_an_opencv_pose():
+    torch.manual_seed(0)
+    image = photo("astronaut", (128, 128))
+    source = torch.from_numpy(cv2_warp(image, 14.0, -10.0, 150.0, 1.1))[None, None]
+    model = DPCN(base_channels=2, depth=1, input_skip=True, image_size=(128, 128), rotation_views=8).eval()
+    with torch.no_grad():
+        out = model(torch.from_numpy(image)[None, None], source)
+        rs, features = model.rotation_scale(torch.from_numpy(image)[None, None], source, views=8)
+    assert angle_error(out.pose.angle, 150.0) < 0.5 and abs(float(out.pose.scale) - 1.1) < 0.01
+    assert abs(float(out.pose.tx) - 14.0) < 1.0 and abs(float(out.pose.ty) + 10.0) < 1.0
+    assert features["rs_template"].shape[0] == 1 and rs.surface.shape == (1, 256, 256)
+    torch.testing.assert_close(out.rotation_scale.surface, rs.surface)
+    for bad in (0, 9, 1.0, True):
+        with pytest.raises(ValueError, match="rotation_views must be an integer from 1 to 8"):
+            model.rotation_views = bad
+    with pytest.raises(ValueError, match="needs square images, got 128x96"):
+        small_dpcn(image_size=(128, 96), rotation_views=4)
+    assert small_dpcn(image_size=(128, 96), rotation_views=2).rotation_views == 2
+
+
 def test_spectrum_window_grid_recovers_an_opencv_pose_with_a_large_shift():
     torch.manual_seed(0)
     image = photo("astronaut", (128, 128))

@@ -67,7 +67,11 @@ def _resolve_device(name: str) -> str:
 
 def _inference_settings(cfg: DictConfig) -> dict[str, int | None]:
     """The top-level overrides of a checkpoint's inference settings (``None``: keep)."""
-    return {"rotation_hypotheses": cfg.rotation_hypotheses, "spectrum_window_grid": cfg.spectrum_window_grid}
+    return {
+        "rotation_hypotheses": cfg.rotation_hypotheses,
+        "spectrum_window_grid": cfg.spectrum_window_grid,
+        "rotation_views": cfg.rotation_views,
+    }
 
 
 def run_predict(cfg: DictConfig) -> None:

@@ -33,8 +33,13 @@ __all__ = [
     "unwarp_rotation_scale",
     "estimate_translation",
     "window_grid_shifts",
+    "dihedral_views",
+    "DIHEDRAL_VIEWS",
     "PhaseCorrelationEstimator",
 ]
+
+# (quarter turns, left-right mirror) of each view, in the order `dihedral_views` stacks them.
+DIHEDRAL_VIEWS: tuple[tuple[int, bool], ...] = tuple((turns, mirror) for turns in range(4) for mirror in (False, True))
 
 
 @dataclass
@@ -101,6 +106,45 @@ def window_grid_shifts(height: int, width: int, grid: int = 1, step: float = 0.1
     return [(i * dy, j * dx) for i in steps for j in steps]
 
 
+def dihedral_views(image: Tensor, views: int) -> Tensor:
+    """The first ``views`` of :data:`DIHEDRAL_VIEWS` of each image, view-major:
+    ``(B, C, H, W) -> (views * B, C, H, W)``.
+
+    View ``(k, mirror)`` is ``image`` turned by ``k`` quarter turns (``torch.rot90``), then
+    mirrored left-right. The same view of both images of a pair keeps their relative scale; a
+    turn keeps their relative rotation and a mirror negates it. Views 1-2 (identity, mirror)
+    take any size; quarter turns (``views > 2``) need square images.
+    """
+    check_views(views, image.shape[-2:])
+    stacked = []
+    for turns, mirror in DIHEDRAL_VIEWS[:views]:
+        view = torch.rot90(image, turns, dims=(-2, -1)) if turns else image
+        stacked.append(torch.flip(view, dims=(-1,)) if mirror else view)
+    return torch.cat(stacked) if views > 1 else image
+
+
+def check_views(views: int, size: Sequence[int] | None = None) -> int:
+    """Validate a number of dihedral views (1-8; ``> 2`` only for square ``size``)."""
+    if isinstance(views, bool) or not isinstance(views, int) or not 1 <= views <= len(DIHEDRAL_VIEWS):
+        raise ValueError(f"rotation_views must be an integer from 1 to {len(DIHEDRAL_VIEWS)}, got {views!r}")
+    if views > 2 and size is not None and size[0] != size[1]:
+        raise ValueError(
+            f"rotation_views > 2 turns the images by quarter turns: needs square images, got {size[0]}x{size[1]}"
+        )
+    return views
+
+
+def _merge_views(surface: Tensor, views: int) -> Tensor:
+    """Average ``(views * B, A, R)`` log-polar surfaces of dihedral views on the first view's
+    angle axis: ``(B, A, R)``. A mirror negates the rotation: row ``r`` -> ``(A - r) mod A``."""
+    stacked = surface.view(views, -1, *surface.shape[1:])
+    aligned = [
+        torch.roll(torch.flip(view, dims=(1,)), 1, dims=1) if mirror else view
+        for view, (_, mirror) in zip(stacked, DIHEDRAL_VIEWS, strict=False)
+    ]
+    return torch.stack(aligned).mean(dim=0)
+
+
 @full_precision
 def estimate_rotation_scale(
     template: Tensor,
@@ -117,6 +161,7 @@ def estimate_rotation_scale(
     relative: bool = True,
     hypotheses: int = 1,
     source_shifts: Sequence[tuple[int, int]] = (),
+    views: int = 1,
 ) -> RotationScale:
     """Rotation (mod 180 degrees) and scale of ``source`` relative to ``template``.
 
@@ -137,11 +182,20 @@ def estimate_rotation_scale(
             A translated source shares only part of its centred window's content with the
             template; a window nearer the translated centre shares more (the template's
             spectrum is computed once).
+        views: ``template`` and ``source`` hold ``views`` dihedral views of each of ``B``
+            pairs, ``(views * B, C, H, W)`` as :func:`dihedral_views` stacks them (e.g. the
+            features of the turned and mirrored images: a CNN is not equivariant to either, so
+            each view's surface is a partly independent estimate). Their surfaces are averaged
+            on the first view's angle axis before the peak search; the result is one estimate
+            per pair, with the first view's log-polar maps.
 
     Returns:
         :class:`RotationScale` with ``angle`` in ``[-90, 90)`` degrees and ``scale``.
     """
     check_pair(template, source)
+    check_views(views, template.shape[-2:])
+    if template.shape[0] % views:
+        raise ValueError(f"{template.shape[0]} maps are not {views} views of whole pairs")
     shifts = [tuple(int(v) for v in shift) for shift in source_shifts if tuple(shift) != (0, 0)]
     sources = [source] + [torch.roll(source, shift, dims=(-2, -1)) for shift in shifts]
     # All spectra in one batch: half spectra (point symmetry) sampled on angles [-90, 90).
@@ -154,6 +208,10 @@ def estimate_rotation_scale(
     surface = correlation_surface(cross, (n_angles, n_radii), sigma=sigma)
     if shifts:
         surface = surface.view(len(sources), batch, n_angles, n_radii).amax(dim=0)
+    if views > 1:
+        surface = _merge_views(surface, views)
+        batch //= views
+        lp_t, lp_s = lp_t[:batch], lp_s[:batch]
     step = log_radius_step(n_radii, min_radius, max_radius)
     mask = _scale_mask(n_radii, step, scale_range, surface.device, surface.dtype)
     scored = surface if mask is None else surface + mask

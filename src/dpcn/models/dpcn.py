@@ -14,7 +14,11 @@ strongest translation peak over the ``2 K`` candidates picks the pose. With
 ``spectrum_window_grid = n > 1`` phase 1 also takes the source's spectrum under an ``n x n``
 grid of shifted windows and keeps the best correlation per log-polar bin: a translated
 source shares more content with the template under a window near its translated centre.
-Both are inference settings; training uses one centred window and one hypothesis.
+With ``rotation_views = V > 1`` phase 1 also runs on the turned and mirrored pair
+(:func:`~dpcn.estimator.dihedral_views`) and averages the ``V`` log-polar surfaces: a U-Net is
+not equivariant to turns or mirrors, so their clutter differs while the true peak is shared.
+All three are inference settings; training uses one view, one centred window and one
+hypothesis.
 """
 
 from __future__ import annotations
@@ -30,6 +34,8 @@ from .._validate import check_int, check_ints, check_number, check_sequence
 from ..estimator import (
     RotationScale,
     Translation,
+    check_views,
+    dihedral_views,
     estimate_rotation_scale,
     estimate_translation,
     unwarp_rotation_scale,
@@ -100,6 +106,10 @@ class DPCN(nn.Module):
             multiples of ``spectrum_window_step`` (a fraction of the image side), the best per
             bin counting (see :func:`~dpcn.estimator.estimate_rotation_scale`); ``n`` odd,
             ``1``: the centred window only.
+        rotation_views: at inference, phase 1 averages its log-polar surfaces over this many
+            dihedral views of the pair (1-8, see :func:`~dpcn.estimator.dihedral_views`: 2 adds
+            the mirrored pair, 4 and 8 quarter turns too, for square images); each view costs
+            one more pass of both phase-1 U-Nets and spectra.
     """
 
     def __init__(
@@ -132,6 +142,7 @@ class DPCN(nn.Module):
         rotation_hypotheses: int = 1,
         spectrum_window_grid: int = 1,
         spectrum_window_step: float = 0.125,
+        rotation_views: int = 1,
     ) -> None:
         super().__init__()
         # Config values by name (they may arrive as strings from the command line).
@@ -192,6 +203,7 @@ class DPCN(nn.Module):
         window_grid_shifts(8, 8, spectrum_window_grid, spectrum_window_step)  # validates them
         self.spectrum_window_grid = spectrum_window_grid
         self.spectrum_window_step = float(spectrum_window_step)
+        self.rotation_views = rotation_views
         if isinstance(train_temperature, (int, float, str)):
             train_temperature = (train_temperature, train_temperature)
         check_sequence("train_temperature", train_temperature, 2, "one number or two")
@@ -224,6 +236,15 @@ class DPCN(nn.Module):
     def spectrum_window_grid(self, value: int) -> None:
         window_grid_shifts(8, 8, value)  # validates it
         self._spectrum_window_grid = value
+
+    @property
+    def rotation_views(self) -> int:
+        """Dihedral views whose phase-1 surfaces are averaged at inference (settable)."""
+        return self._rotation_views
+
+    @rotation_views.setter
+    def rotation_views(self, value: int) -> None:
+        self._rotation_views = check_views(value, getattr(self, "image_size", None))
 
     def spectrum_window_shifts(self, height: int, width: int, grid: int) -> list[tuple[int, int]]:
         """Circular shifts ``(rows, cols)`` of a ``height x width`` feature map for a
@@ -271,26 +292,34 @@ class DPCN(nn.Module):
         return F.pixel_unshuffle(image, d)
 
     def rotation_scale(
-        self, template: Tensor, source: Tensor, hypotheses: int = 1, window_grid: int = 1
+        self, template: Tensor, source: Tensor, hypotheses: int = 1, window_grid: int = 1, views: int = 1
     ) -> tuple[RotationScale, dict[str, Tensor]]:
         """Phase 1: features, then rotation (mod 180 degrees) and scale (and the next
         strongest peaks, ``hypotheses`` in all, as ``candidate_*``), with the source spectrum
-        under a ``window_grid x window_grid`` grid of windows.
+        under a ``window_grid x window_grid`` grid of windows and the surfaces of ``views``
+        dihedral views of the pair averaged.
 
-        The features are ``(B, C, H / d, W / d)`` with ``d = rotation_scale_downsample``.
+        The features are ``(B, C, H / d, W / d)`` with ``d = rotation_scale_downsample`` (of
+        the first view, the pair as given).
         """
-        features = {
-            "rs_template": self.rs_template(self.rotation_scale_unet_input(template)),
-            "rs_source": self.rs_source(self.rotation_scale_unet_input(source)),
-        }
-        rs = self.rotation_scale_from_features(features["rs_template"], features["rs_source"], hypotheses, window_grid)
-        return rs, features
+        check_views(views, template.shape[-2:])
+        rs_template = self.rs_template(self.rotation_scale_unet_input(dihedral_views(template, views)))
+        rs_source = self.rs_source(self.rotation_scale_unet_input(dihedral_views(source, views)))
+        rs = self.rotation_scale_from_features(rs_template, rs_source, hypotheses, window_grid, views)
+        batch = template.shape[0]
+        return rs, {"rs_template": rs_template[:batch], "rs_source": rs_source[:batch]}
 
     def rotation_scale_from_features(
-        self, template_features: Tensor, source_features: Tensor, hypotheses: int = 1, window_grid: int = 1
+        self,
+        template_features: Tensor,
+        source_features: Tensor,
+        hypotheses: int = 1,
+        window_grid: int = 1,
+        views: int = 1,
     ) -> RotationScale:
-        """Phase 1's estimate from ``(B, C, h, w)`` feature maps, with this model's log-polar
-        and peak settings (also for maps from elsewhere, e.g. to compare extractors)."""
+        """Phase 1's estimate from ``(B, C, h, w)`` feature maps (``(views * B, C, h, w)``:
+        those of dihedral views), with this model's log-polar and peak settings (also for
+        maps from elsewhere, e.g. to compare extractors)."""
         return estimate_rotation_scale(
             template_features,
             source_features,
@@ -305,6 +334,7 @@ class DPCN(nn.Module):
             scale_range=self.scale_range,
             hypotheses=hypotheses,
             source_shifts=self.spectrum_window_shifts(*source_features.shape[-2:], window_grid),
+            views=views,
         )
 
     def translation(
@@ -372,7 +402,7 @@ class DPCN(nn.Module):
         self.check_inputs(template, source)
         k = self.rotation_hypotheses
         with inputs_checked():
-            rs, features = self.rotation_scale(template, source, k, self.spectrum_window_grid)
+            rs, features = self.rotation_scale(template, source, k, self.spectrum_window_grid, self.rotation_views)
             angle, scale = rs.candidate_angle.flatten(), rs.candidate_scale.flatten()  # (B * K,)
             candidates = source.repeat_interleave(k, dim=0) if k > 1 else source
             unwarped = unwarp_rotation_scale(candidates, angle, scale)

@@ -287,11 +287,13 @@ def load_matcher(
     map_location: str | torch.device = "cpu",
     rotation_hypotheses: int | None = None,
     spectrum_window_grid: int | None = None,
+    rotation_views: int | None = None,
 ) -> DPCNModule:
     """Load a DPCN checkpoint ready for ``.match(template, source) -> Pose`` (eval mode).
 
-    ``rotation_hypotheses`` and ``spectrum_window_grid`` replace the checkpoint's inference
-    settings of those names (see :class:`~dpcn.models.DPCN`); ``None`` keeps them.
+    ``rotation_hypotheses``, ``spectrum_window_grid`` and ``rotation_views`` replace the
+    checkpoint's inference settings of those names (see :class:`~dpcn.models.DPCN`); ``None``
+    keeps them.
     Raises :class:`CheckpointError` naming the problem for a missing, corrupt or foreign file.
     """
     path = Path(ckpt_path)
@@ -314,4 +316,6 @@ def load_matcher(
         module.model.rotation_hypotheses = rotation_hypotheses
     if spectrum_window_grid is not None:
         module.model.spectrum_window_grid = spectrum_window_grid
+    if rotation_views is not None:
+        module.model.rotation_views = rotation_views
     return module.to(map_location).eval()
