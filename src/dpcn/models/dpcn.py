@@ -418,13 +418,14 @@ class DPCN(nn.Module):
     def match(self, template: Tensor, source: Tensor, chunk_size: int | None = None) -> Pose:
         """Inference: the pose mapping ``template`` onto ``source`` (``(B,)`` fields).
 
-        Large batches run ``chunk_size`` pairs at a time (default: 8 on CPUs, all at once
-        elsewhere): on a CPU the full-resolution feature maps of bigger batches fall out of
-        the cache, and the time per pair grows instead of shrinking (32 pairs at once: ~2x
-        slower per pair than 8 at a time on 2 cores).
+        Large batches run ``chunk_size`` pairs at a time (default: 8 on CPUs, ``8 //
+        rotation_views`` with several views, all at once elsewhere): on a CPU the
+        full-resolution feature maps of bigger batches fall out of the cache, and the time per
+        pair grows instead of shrinking (32 pairs at once: ~2x slower per pair than 8 at a
+        time on 2 cores).
         """
         if chunk_size is None:
-            chunk_size = 8 if template.device.type == "cpu" else template.shape[0]
+            chunk_size = max(1, 8 // self.rotation_views) if template.device.type == "cpu" else template.shape[0]
         if chunk_size < 1:
             raise ValueError(f"chunk_size must be >= 1, got {chunk_size}")
         was_training = self.training
