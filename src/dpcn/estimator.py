@@ -140,7 +140,7 @@ def _merge_views(surface: Tensor, views: int) -> Tensor:
     stacked = surface.view(views, -1, *surface.shape[1:])
     aligned = [
         torch.roll(torch.flip(view, dims=(1,)), 1, dims=1) if mirror else view
-        for view, (_, mirror) in zip(stacked, DIHEDRAL_VIEWS, strict=False)
+        for view, (_, mirror) in zip(stacked, DIHEDRAL_VIEWS[:views], strict=True)
     ]
     return torch.stack(aligned).mean(dim=0)
 

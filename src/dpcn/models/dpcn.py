@@ -244,7 +244,7 @@ class DPCN(nn.Module):
 
     @rotation_views.setter
     def rotation_views(self, value: int) -> None:
-        self._rotation_views = check_views(value, getattr(self, "image_size", None))
+        self._rotation_views = check_views(value, self.image_size)
 
     def spectrum_window_shifts(self, height: int, width: int, grid: int) -> list[tuple[int, int]]:
         """Circular shifts ``(rows, cols)`` of a ``height x width`` feature map for a
@@ -302,7 +302,6 @@ class DPCN(nn.Module):
         The features are ``(B, C, H / d, W / d)`` with ``d = rotation_scale_downsample`` (of
         the first view, the pair as given).
         """
-        check_views(views, template.shape[-2:])
         rs_template = self.rs_template(self.rotation_scale_unet_input(dihedral_views(template, views)))
         rs_source = self.rs_source(self.rotation_scale_unet_input(dihedral_views(source, views)))
         rs = self.rotation_scale_from_features(rs_template, rs_source, hypotheses, window_grid, views)
