@@ -35,6 +35,7 @@ TIMED_SETTINGS = (  # the preset's architecture and its cost-bearing inference s
     "rotation_scale_pooling",
     "rotation_scale_base_channels",
     "rotation_scale_depth",
+    "rotation_scale_template_channels",
     "n_angles",
     "n_radii",
     "rotation_hypotheses",

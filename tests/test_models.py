@@ -148,6 +148,12 @@ def test_phase1_downsample_and_width_options_shape_the_phase1_unets():
     assert out.rotation_scale.surface.shape == (2, 32, 32)  # the log-polar grid is unchanged
     assert model.rs_template.stem[0].out_channels == 3 and model.rs_template.depth == 2
     assert model.t_template.stem[0].out_channels == 2 and model.t_template.depth == 1
+    assert model.rs_source.stem[0].out_channels == 3
+    wide_template = small_dpcn(rotation_scale_base_channels=3, rotation_scale_template_channels=5).eval()
+    assert wide_template.rs_template.stem[0].out_channels == 5 and wide_template.rs_source.stem[0].out_channels == 3
+    assert wide_template(torch.rand(1, 1, 32, 32), torch.rand(1, 1, 32, 32)).rotation_scale.surface.shape == (1, 32, 32)
+    with pytest.raises(ValueError, match="rotation_scale_template_channels"):
+        small_dpcn(rotation_scale_template_channels=0)
     # phase 1 from given feature maps: the model's own estimate from its own features
     again = model.rotation_scale_from_features(out.features["rs_template"], out.features["rs_source"])
     torch.testing.assert_close(again.surface, out.rotation_scale.surface)

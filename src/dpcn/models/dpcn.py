@@ -88,6 +88,10 @@ class DPCN(nn.Module):
             cost, but fine texture that averaging would erase still reaches the U-Net).
         rotation_scale_base_channels, rotation_scale_depth: width and depth of the phase-1
             U-Nets (``None``: ``base_channels`` / ``depth``).
+        rotation_scale_template_channels: width of the template's phase-1 U-Net alone
+            (``None``: ``rotation_scale_base_channels``). The two sides need not match: only
+            their output feature maps meet, and the template side is the harder one when its
+            sensor shows the shared structure faintly (the simulated style A).
         image_size: ``(H, W)`` the model is built for; other sizes raise a clear error
             (``None`` accepts any size).
         n_angles, n_radii, min_radius, max_radius, highpass: phase-1 log-polar settings.
@@ -125,6 +129,7 @@ class DPCN(nn.Module):
         rotation_scale_pooling: str = "average",
         rotation_scale_base_channels: int | None = None,
         rotation_scale_depth: int | None = None,
+        rotation_scale_template_channels: int | None = None,
         image_size: tuple[int, int] | list[int] | None = (256, 256),
         n_angles: int = 256,
         n_radii: int = 256,
@@ -155,6 +160,7 @@ class DPCN(nn.Module):
             ("rotation_scale_downsample", rotation_scale_downsample, 1),
             ("rotation_scale_base_channels", rotation_scale_base_channels, 1),
             ("rotation_scale_depth", rotation_scale_depth, 0),
+            ("rotation_scale_template_channels", rotation_scale_template_channels, 1),
             ("n_angles", n_angles, 2),
             ("n_radii", n_radii, 2),
             ("window", window, 0),
@@ -181,7 +187,8 @@ class DPCN(nn.Module):
         rs_width = base_channels if rotation_scale_base_channels is None else rotation_scale_base_channels
         rs_levels = depth if rotation_scale_depth is None else rotation_scale_depth
         rs_channels = in_channels * (rotation_scale_downsample**2 if rotation_scale_pooling == "space_to_depth" else 1)
-        self.rs_template = unet(rs_channels, rs_width, rs_levels)
+        rs_template_width = rs_width if rotation_scale_template_channels is None else rotation_scale_template_channels
+        self.rs_template = unet(rs_channels, rs_template_width, rs_levels)
         self.rs_source = unet(rs_channels, rs_width, rs_levels)
         self.t_template = unet(in_channels, base_channels, depth)
         self.t_source = unet(in_channels, base_channels, depth)
