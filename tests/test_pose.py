@@ -6,7 +6,15 @@ import numpy as np
 import pytest
 import torch
 
-from dpcn.pose import Pose, matrix_to_pose, pose_to_matrix, sample_poses, warp_by_pose, wrap_angle
+from dpcn.pose import (
+    Pose,
+    matrix_to_pose,
+    pose_to_matrix,
+    sample_poses,
+    unwarp_by_pose,
+    warp_by_pose,
+    wrap_angle,
+)
 
 from .conftest import cv2_warp, photo
 
@@ -39,6 +47,31 @@ def test_warp_by_pose_matches_cv2_warp_affine(size):
     got = warp_by_pose(torch.from_numpy(template)[None, None], Pose.from_tensor(torch.tensor(pose)))
     interior = (slice(4, -4), slice(4, -4))
     assert np.abs(got[0, 0].numpy() - expected)[interior].max() < 1e-3
+
+
+def test_unwarp_by_pose_inverts_an_opencv_warp():
+    template = photo("astronaut", (128, 128))
+    pose = (9.3, -14.1, 123.0, 0.87)
+    source = torch.from_numpy(cv2_warp(template, *pose))[None, None]
+    pose_ = Pose.from_tensor(torch.tensor(pose))
+    back = unwarp_by_pose(source, pose_)[0, 0].numpy()
+    # wherever the source saw the template (a disc well inside both frames), it is the template
+    yy, xx = np.mgrid[:128, :128]
+    inside = (yy - 63.5 + 14.1) ** 2 + (xx - 63.5 - 9.3) ** 2 < 40**2
+    inside &= (yy - 63.5) ** 2 + (xx - 63.5) ** 2 < 55**2
+    assert inside.sum() > 2000 and np.abs(back - template)[inside].mean() < 0.02
+    # outside what the source saw: the padding
+    unseen = unwarp_by_pose(torch.from_numpy(cv2_warp(np.ones_like(template), *pose))[None, None], pose_)[0, 0] == 0
+    assert unseen.sum() > 500 and (back[unseen.numpy()] == 0).all()
+    # exactly the inverse of warp_by_pose, and differentiable in the pose
+    poses = Pose.from_tensor(torch.tensor([[5.0, -3.0, -40.0, 1.1], [0.0, 8.0, 170.0, 0.9]], dtype=torch.float64))
+    axis = torch.arange(48.0, dtype=torch.float64)
+    yy, xx = torch.meshgrid(axis, axis, indexing="ij")
+    image = (torch.sin(xx / 6.0) * torch.cos(yy / 7.0)).expand(2, 1, 48, 48)  # smooth: interpolation nearly exact
+    round_trip = unwarp_by_pose(warp_by_pose(image, poses), poses)
+    assert (round_trip - image)[..., 18:30, 18:30].abs().max() < 0.03  # two bilinear passes; a wrong inverse: ~1
+    angle = poses.angle.clone().requires_grad_()
+    assert torch.autograd.gradcheck(lambda a: unwarp_by_pose(image, Pose(poses.tx, poses.ty, a, poses.scale)), (angle,))
 
 
 def test_wrap_angle_range():

@@ -8,7 +8,7 @@ last column; ``angle`` in degrees, counter-clockwise as displayed, in ``(-180, 1
 
 from .estimator import PhaseCorrelationEstimator
 from .io import DpcnInputError, load_image
-from .pose import Pose, pose_to_matrix, sample_poses, warp_by_pose
+from .pose import Pose, pose_to_matrix, sample_poses, unwarp_by_pose, warp_by_pose
 from .registration import register
 
 __version__ = "0.1.0"
@@ -21,6 +21,7 @@ __all__ = [
     "pose_to_matrix",
     "register",
     "sample_poses",
+    "unwarp_by_pose",
     "warp_by_pose",
     "__version__",
 ]

@@ -30,6 +30,7 @@ __all__ = [
     "pose_to_matrix",
     "matrix_to_pose",
     "warp_by_pose",
+    "unwarp_by_pose",
     "sample_poses",
     "wrap_angle",
 ]
@@ -186,6 +187,20 @@ def matrix_to_pose(matrix: Tensor, size: tuple[int, int]) -> Pose:
     return Pose(tx, ty, wrap_angle(angle), scale)
 
 
+def _warp_affine(image: Tensor, pose: Pose, inverse: bool, mode: str, padding_mode: str) -> Tensor:
+    """kornia ``warp_affine`` of ``(B, C, H, W)`` images by the matrix of ``pose`` (or its inverse)."""
+    _, _, height, width = image.shape
+    matrix = pose_to_matrix(
+        *(t.to(image.device, image.dtype) for t in (pose.tx, pose.ty, pose.angle, pose.scale)),
+        size=(height, width),
+    )
+    if inverse:
+        matrix = kornia.geometry.transform.invert_affine_transform(matrix)
+    return kornia.geometry.transform.warp_affine(
+        image, matrix, (height, width), mode=mode, padding_mode=padding_mode, align_corners=True
+    )
+
+
 def warp_by_pose(
     image: Tensor,
     pose: Pose,
@@ -197,14 +212,21 @@ def warp_by_pose(
     With ``pose`` the ground truth, ``warp_by_pose(template, pose)`` is the source.
     Differentiable with respect to the image and the pose.
     """
-    _, _, height, width = image.shape
-    matrix = pose_to_matrix(
-        *(t.to(image.device, image.dtype) for t in (pose.tx, pose.ty, pose.angle, pose.scale)),
-        size=(height, width),
-    )
-    return kornia.geometry.transform.warp_affine(
-        image, matrix, (height, width), mode=mode, padding_mode=padding_mode, align_corners=True
-    )
+    return _warp_affine(image, pose, False, mode, padding_mode)
+
+
+def unwarp_by_pose(
+    source: Tensor,
+    pose: Pose,
+    mode: str = "bilinear",
+    padding_mode: str = "zeros",
+) -> Tensor:
+    """Bring ``(B, C, H, W)`` sources onto their templates: the inverse of :func:`warp_by_pose`.
+
+    ``unwarp_by_pose(warp_by_pose(template, pose), pose)`` is ``template`` wherever the source
+    saw it (``padding_mode`` elsewhere). Differentiable with respect to the image and the pose.
+    """
+    return _warp_affine(source, pose, True, mode, padding_mode)
 
 
 def sample_poses(
