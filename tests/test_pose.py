@@ -74,6 +74,19 @@ def test_unwarp_by_pose_inverts_an_opencv_warp():
     assert torch.autograd.gradcheck(lambda a: unwarp_by_pose(image, Pose(poses.tx, poses.ty, a, poses.scale)), (angle,))
 
 
+def test_warp_and_unwarp_reject_bad_input():
+    pose = Pose.from_tensor(torch.tensor([[1.0, 0.0, 10.0, 1.0]]))
+    with pytest.raises(ValueError, match=r"image must have shape \(B, C, H, W\), got \(8, 8\)"):
+        warp_by_pose(torch.rand(8, 8), pose)
+    with pytest.raises(ValueError, match="1 poses for 2 images"):
+        unwarp_by_pose(torch.rand(2, 1, 8, 8), pose)
+    with pytest.raises(ValueError, match="image contains NaN"):
+        warp_by_pose(torch.full((1, 1, 8, 8), float("nan")), pose)
+    flat = Pose.from_tensor(torch.tensor([[1.0, 0.0, 10.0, 0.0]]))
+    with pytest.raises(ValueError, match="scale is not a finite number > 0"):
+        unwarp_by_pose(torch.rand(1, 1, 8, 8), flat)
+
+
 def test_wrap_angle_range():
     angles = torch.tensor([-540.0, -180.0, -179.0, 0.0, 180.0, 181.0, 359.0, 720.0])
     wrapped = wrap_angle(angles)

@@ -25,6 +25,8 @@ import kornia
 import torch
 from torch import Tensor
 
+from .ops._checks import check_image
+
 __all__ = [
     "Pose",
     "pose_to_matrix",
@@ -189,7 +191,11 @@ def matrix_to_pose(matrix: Tensor, size: tuple[int, int]) -> Pose:
 
 def _warp_affine(image: Tensor, pose: Pose, inverse: bool, mode: str, padding_mode: str) -> Tensor:
     """kornia ``warp_affine`` of ``(B, C, H, W)`` images by the matrix of ``pose`` (or its inverse)."""
-    _, _, height, width = image.shape
+    batch, _, height, width = check_image(image).shape
+    if len(pose) != batch:
+        raise ValueError(f"{len(pose)} poses for {batch} images: need one pose per image")
+    if inverse and not bool(((pose.scale > 0) & torch.isfinite(pose.scale)).all()):
+        raise ValueError(f"cannot un-warp by a pose whose scale is not a finite number > 0: {pose.scale.tolist()}")
     matrix = pose_to_matrix(
         *(t.to(image.device, image.dtype) for t in (pose.tx, pose.ty, pose.angle, pose.scale)),
         size=(height, width),
