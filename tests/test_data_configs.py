@@ -63,15 +63,25 @@ def test_builtin_scene_when_no_root(tmp_path, monkeypatch, caplog):
     import dpcn.data.maps as maps
 
     monkeypatch.setattr(maps, "_announced", False)
-    cfg = compose_config("data=l2sat", "image_size=64", "data.dataset.translation=10")
+    # Three scenes: scene_c is the test scene, a and b train (the default is 8, generated the same way).
+    cfg = compose_config("data=l2sat", "image_size=64", "data.dataset.translation=10", "data.builtin_scenes=3")
     dm = instantiate(cfg.data)
     with caplog.at_level(logging.INFO, logger="dpcn"):
         dm.setup("fit")
-    assert any("built-in procedural scenes" in r.getMessage() for r in caplog.records)
-    root = tmp_path / f"builtin-scenes-{maps.BUILTIN_VERSION}"
-    assert sorted(p.name for p in root.iterdir() if p.is_dir()) == [f"scene_{c}" for c in "abcdefgh"]
-    assert [s.name for s in dm.datasets["train"].scenes] == [f"scene_{c}" for c in "abdefgh"]
+    assert any("3 built-in procedural scenes" in r.getMessage() for r in caplog.records)
+    root = tmp_path / f"builtin-scenes-{maps.BUILTIN_VERSION}-3"
+    assert sorted(p.name for p in root.iterdir() if p.is_dir()) == ["scene_a", "scene_b", "scene_c"]
+    assert [s.name for s in dm.datasets["train"].scenes] == ["scene_a", "scene_b"]
     assert dm.datasets["train"][0]["template"].shape == (1, 64, 64)
+
+
+def test_builtin_scene_count_is_checked(tmp_path, monkeypatch):
+    monkeypatch.setenv("DPCN_CACHE", str(tmp_path))
+    for bad in (0, "many"):
+        dm = instantiate(compose_config("data=l2d", f"data.builtin_scenes={bad}").data)
+        with pytest.raises(DataError, match="data.builtin_scenes must be an integer >= 1"):
+            dm.setup("fit")
+    assert not any(tmp_path.iterdir())  # nothing generated
 
 
 def test_missing_root_is_a_clear_error(tmp_path):

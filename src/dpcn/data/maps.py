@@ -24,26 +24,28 @@ BUILTIN_SCENES = 8
 _announced = False
 
 
-def builtin_root(cache_dir: str | Path | None = None) -> Path:
-    """The built-in procedural scenes (:data:`BUILTIN_SCENES` 1280x2560 scenes with disjoint
-    train and val areas, :func:`dpcn.data.scene.make_dataset`'s defaults), generated once
-    and cached.
+def builtin_root(cache_dir: str | Path | None = None, n_scenes: int = BUILTIN_SCENES) -> Path:
+    """The built-in procedural scenes (``n_scenes`` 1280x2560 scenes with disjoint train and
+    val areas, :func:`dpcn.data.scene.make_dataset`'s defaults), generated once and cached.
 
-    The cache is ``$DPCN_CACHE`` or ``~/.cache/dpcn``; generation takes ~30 s and is
-    written to a temporary folder first, so concurrent or interrupted runs never see half a
-    data set.
+    Scene ``i`` depends only on ``i`` (and :data:`BUILTIN_VERSION`), so a larger count adds
+    scenes and keeps the first ones. The cache is ``$DPCN_CACHE`` or ``~/.cache/dpcn``;
+    generation takes ~7 s per scene and is written to a temporary folder first, so
+    concurrent or interrupted runs never see half a data set.
     """
     from .scene import make_dataset
 
+    if isinstance(n_scenes, bool) or not isinstance(n_scenes, int) or n_scenes < 1:
+        raise DataError(f"data.builtin_scenes must be an integer >= 1, got {n_scenes!r}")
     base = Path(cache_dir or os.environ.get("DPCN_CACHE") or Path.home() / ".cache" / "dpcn")
-    root = base / f"builtin-scenes-{BUILTIN_VERSION}"
+    root = base / f"builtin-scenes-{BUILTIN_VERSION}-{n_scenes}"
     done = root / "README.txt"  # make_dataset writes it after the last scene
     if done.is_file():
         return root
     base.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=".builtin-", dir=base))
     try:
-        make_dataset(tmp, n_scenes=BUILTIN_SCENES, seed=0)
+        make_dataset(tmp, n_scenes=n_scenes, seed=0)
         try:
             tmp.rename(root)
         except OSError:  # another process won the race
@@ -54,13 +56,24 @@ def builtin_root(cache_dir: str | Path | None = None) -> Path:
     return root
 
 
-def map_pairs(length: int, seed: int, root: str | Path | None = None, **kwargs: Any) -> MapPairs:
-    """:class:`MapPairs` over ``root``, or over the built-in procedural scenes if ``root`` is None."""
+def map_pairs(
+    length: int,
+    seed: int,
+    root: str | Path | None = None,
+    builtin_scenes: int = BUILTIN_SCENES,
+    **kwargs: Any,
+) -> MapPairs:
+    """:class:`MapPairs` over ``root``, or over the first ``builtin_scenes`` built-in
+    procedural scenes if ``root`` is None."""
     global _announced
     if root is None:
-        root = builtin_root()
+        root = builtin_root(n_scenes=builtin_scenes)
         if not _announced:
-            log.info("no data.root given: using the built-in procedural scenes in %s (python -m dpcn make-data)", root)
+            log.info(
+                "no data.root given: using the %d built-in procedural scenes in %s (python -m dpcn make-data)",
+                builtin_scenes,
+                root,
+            )
             _announced = True
     elif not Path(root).exists():
         raise DataError(f"data.root does not exist: {root}")
