@@ -143,6 +143,14 @@ def _cached(path: str, mtime_ns: int, size: int) -> tuple[np.ndarray, np.ndarray
     return image, valid
 
 
+def _crop_counts(mask: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """Observed pixels of every ``size`` crop of a bool ``mask``: ``(Hb - h + 1, Wb - w + 1)``
+    int64, entry ``[oy, ox]`` for the crop whose top-left pixel is ``(ox, oy)``."""
+    h, w = size
+    total = cv2.integral(mask.astype(np.uint8), sdepth=cv2.CV_64F).astype(np.int64)
+    return total[h:, w:] - total[:-h, w:] - total[h:, :-w] + total[:-h, :-w]
+
+
 def _load(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
     """Per-process cached :func:`read_image`."""
     try:
@@ -243,9 +251,13 @@ class MapPairs(Dataset):
     ``size`` crop of the template modality; the source is the source modality warped
     directly from the big raster with the crop offset composed into the pose matrix, so
     that ``source == cv2.warpAffine(crop_of_source_modality, M(pose), (W, H))`` exactly and
-    without an empty border. If the template crop's valid fraction (mask) is below
-    ``min_valid``, the centre is redrawn up to ``max_tries`` times; then the best attempt is
-    used and a warning naming the scene is issued (once per scene and dataset object).
+    without an empty border. With a no-data mask, every template crop is at least
+    ``min_valid`` observed: the offset is drawn up to ``max_tries`` times, and if none of
+    those qualifies, uniformly among the offsets that do (found exactly from the mask's
+    integral image, once per scene and process), so sparse scenes are not filled with
+    mostly empty crops; only if no offset of the rectangle qualifies for the pose is the
+    most observed crop used, with a warning naming the scene (once per scene and dataset
+    object).
 
     Args:
         root: data root (see the module docstring for the layout).
@@ -260,7 +272,9 @@ class MapPairs(Dataset):
         translation, rotation, scale: pose ranges as in :func:`dpcn.pose.sample_poses`.
         channels: 1 (grey; colour maps are converted) or 3 (RGB; grey maps replicated).
         min_valid: minimum valid (mask) fraction of the template crop.
-        max_tries: centre draws per item before giving up on ``min_valid``.
+        max_tries: random offset draws per item before the exact draw among the qualifying
+            ones (either way the crops meet ``min_valid``; the draws keep the items of
+            earlier releases).
     """
 
     def __init__(
@@ -306,6 +320,7 @@ class MapPairs(Dataset):
         self.max_tries = int(max_tries)
         self.epoch = 0
         self._warned: set[str] = set()
+        self._qualifying: dict[int, np.ndarray] = {}  # scene index -> offsets meeting min_valid
 
         self.template_modality, self.source_modality = PAIRS[pair]
         names = self._scene_names(scenes, exclude_scenes)
@@ -531,32 +546,33 @@ class MapPairs(Dataset):
         if ox_hi < ox_lo or oy_hi < oy_lo:  # cannot happen: rectangles were checked
             raise DataError(f"scene {scene.name!r}: no room for pose {(tx, ty, angle, sc)}")
 
-        timg, talpha = _load(scene.template_path)
-        mask = talpha
-        if scene.mask_path is not None:
-            mimg, _ = _load(scene.mask_path)
-            mask = (mimg > 0) if mimg.ndim == 2 else (mimg > 0).any(-1)
-            if talpha is not None:
-                mask = mask & talpha
-
-        best = None
-        for _ in range(self.max_tries):
+        timg, _ = _load(scene.template_path)
+        mask = self._template_mask(scene)
+        for _ in range(1 if mask is None else self.max_tries):
             ox = int(rng.integers(ox_lo, ox_hi + 1))
             oy = int(rng.integers(oy_lo, oy_hi + 1))
-            frac = 1.0 if mask is None else float(mask[oy : oy + h, ox : ox + w].mean())
-            if best is None or frac > best[0]:
-                best = (frac, ox, oy)
-            if frac >= self.min_valid:
+            if mask is None or mask[oy : oy + h, ox : ox + w].mean() >= self.min_valid:
                 break
-        frac, ox, oy = best
-        if frac < self.min_valid and scene.name not in self._warned:
-            self._warned.add(scene.name)
-            warnings.warn(
-                f"MapPairs: scene {scene.name!r} ({self.template_modality}, split {self.split!r}):"
-                f" no template crop with valid fraction >= min_valid={self.min_valid} in "
-                f"{self.max_tries} tries; using the best attempt ({frac:.2f})",
-                stacklevel=2,
-            )
+        else:  # no draw qualified: pick among the offsets that do
+            box = self._qualifying_offsets(scene_idx, mask)[oy_lo : oy_hi + 1, ox_lo : ox_hi + 1]
+            hits = np.flatnonzero(box)
+            if hits.size:
+                i = int(hits[rng.integers(hits.size)])
+                oy, ox = oy_lo + i // box.shape[1], ox_lo + i % box.shape[1]
+            else:
+                counts = _crop_counts(mask, (h, w))[oy_lo : oy_hi + 1, ox_lo : ox_hi + 1]
+                i = int(np.argmax(counts))
+                oy, ox = oy_lo + i // box.shape[1], ox_lo + i % box.shape[1]
+                if scene.name not in self._warned:
+                    self._warned.add(scene.name)
+                    frac = float(counts.flat[i]) / (h * w)
+                    warnings.warn(
+                        f"MapPairs: scene {scene.name!r} ({self.template_modality}, split {self.split!r}):"
+                        f" no template crop with valid fraction >= min_valid={self.min_valid} in region"
+                        f" {[round(v) for v in (cx0, cy0, cx1, cy1)]} for this pose; using the most"
+                        f" observed one ({frac:.2f})",
+                        stacklevel=2,
+                    )
 
         template = timg[oy : oy + h, ox : ox + w]
         tmask = np.ones((h, w), np.float32) if mask is None else mask[oy : oy + h, ox : ox + w].astype(np.float32)
@@ -584,6 +600,23 @@ class MapPairs(Dataset):
             "pose": torch.tensor([tx, ty, angle, sc], dtype=torch.float32),
             "template_mask": torch.from_numpy(tmask)[None],
         }
+
+    def _template_mask(self, scene: _Scene) -> np.ndarray | None:
+        """The template's observed pixels (mask file and/or alpha channel), or ``None``."""
+        _, mask = _load(scene.template_path)
+        if scene.mask_path is not None:
+            mimg, _ = _load(scene.mask_path)
+            observed = (mimg > 0) if mimg.ndim == 2 else (mimg > 0).any(-1)
+            mask = observed if mask is None else observed & mask
+        return mask
+
+    def _qualifying_offsets(self, scene_idx: int, mask: np.ndarray) -> np.ndarray:
+        """``(Hb - h + 1, Wb - w + 1)`` bool: crop offsets ``(oy, ox)`` whose template crop is
+        at least ``min_valid`` observed (cached per scene)."""
+        if scene_idx not in self._qualifying:
+            h, w = self.size
+            self._qualifying[scene_idx] = _crop_counts(mask, (h, w)) >= self.min_valid * h * w
+        return self._qualifying[scene_idx]
 
     def __repr__(self) -> str:
         return (
