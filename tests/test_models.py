@@ -334,3 +334,41 @@ def test_spectrum_window_grid_recovers_an_opencv_pose_with_a_large_shift():
     assert (out.rotation_scale.surface >= centred.surface - 1e-6).all()  # the centred window is one of them
     assert angle_error(out.pose.angle, -120.0) < 0.5 and abs(float(out.pose.scale) - 0.9) < 0.01
     assert abs(float(out.pose.tx) - 24.0) < 1.0 and abs(float(out.pose.ty) + 20.0) < 1.0
+
+
+def test_nearest_window_shifts_point_the_window_at_the_template_centre():
+    # 64 x 64 phase-1 maps of 128 x 128 images: grid points 8 px apart (16 image px).
+    model = DPCN(base_channels=2, depth=1, image_size=(128, 128), rotation_scale_downsample=2, spectrum_window_grid=3)
+    tx = torch.tensor([0.0, 20.0, -20.0, 50.0, 7.0])
+    ty = torch.tensor([0.0, -30.0, 9.0, -50.0, 0.0])
+    shifts = model.nearest_window_shifts(tx, ty, (64, 64))
+    assert shifts.dtype == torch.long
+    assert shifts.tolist() == [[0, 0], [8, -8], [-8, 8], [8, -8], [0, 0]]  # (rows, cols), clamped to the grid
+    model.spectrum_window_grid = 5
+    assert model.nearest_window_shifts(tx, ty, (64, 64))[3].tolist() == [16, -16]
+    model.spectrum_window_grid = 1
+    assert not model.nearest_window_shifts(tx, ty, (64, 64)).any()
+
+
+def test_nearest_window_shares_more_of_a_shifted_opencv_pair():
+    """The shifted window sees what the template's centred one sees: a stronger true peak
+    than the centred window (untrained features pass the image through the input skip)."""
+    torch.manual_seed(0)
+    image = photo("astronaut", (128, 128))
+    template = torch.from_numpy(image)[None, None]
+    source = torch.from_numpy(cv2_warp(image, 30.0, -28.0, 40.0, 1.1))[None, None]
+    model = DPCN(base_channels=2, depth=1, input_skip=True, image_size=(128, 128), spectrum_window_grid=3).eval()
+    shifts = model.nearest_window_shifts(torch.tensor([30.0]), torch.tensor([-28.0]), (128, 128))
+    assert shifts.tolist() == [[16, -16]]
+    with torch.no_grad():
+        centred, plain = model.rotation_scale(template, source)
+        nearest, features = model.rotation_scale(template, source, source_shifts=shifts)
+        unshifted, _ = model.rotation_scale(template, source, source_shifts=torch.zeros(1, 2, dtype=torch.long))
+    torch.testing.assert_close(unshifted.surface, centred.surface)
+    assert float(nearest.confidence) > float(centred.confidence) + 0.05
+    assert angle_error(nearest.angle, 40.0) < 0.5 and abs(float(nearest.scale) - 1.1) < 0.01
+    torch.testing.assert_close(features["rs_source"], plain["rs_source"])  # returned unshifted
+    with pytest.raises(ValueError, match="one \\(rows, cols\\) shift per pair"):
+        model.rotation_scale(template, source, views=2, source_shifts=shifts)
+    with pytest.raises(ValueError, match="one \\(rows, cols\\) shift per pair"):
+        model.rotation_scale(template, source, source_shifts=torch.zeros(2, 2, dtype=torch.long))

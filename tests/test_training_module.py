@@ -111,3 +111,25 @@ def test_gradcheck_alignment_surface():
         return module._alignment({"rs_template": t, "rs_source": s}, gt)[0]
 
     assert torch.autograd.gradcheck(surface, (template, source))
+
+
+def test_nearest_training_window_follows_the_inference_grid():
+    """``train_spectrum_window="nearest"`` moves phase 1's source window during training only
+    when there is a grid to pick from; a bad value is refused by name."""
+    template, source, gt = batch()
+    gt[:, 0] = torch.tensor([9.0, -9.0, 2.0, 12.0])  # shifts of a quarter of the side and more
+
+    def loss(window: str, grid: int) -> torch.Tensor:
+        torch.manual_seed(0)
+        module = DPCNModule(net=dict(NET, spectrum_window_grid=grid), train_spectrum_window=window)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # self.log() without a trainer
+            value = module._training_loss(template, source, gt)
+        value.backward()
+        assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in module.model.rs_source.parameters())
+        return value.detach()
+
+    torch.testing.assert_close(loss("nearest", 1), loss("centred", 1))
+    assert torch.isfinite(loss("nearest", 3)) and not torch.allclose(loss("nearest", 3), loss("centred", 3))
+    with pytest.raises(ValueError, match="model.train_spectrum_window must be one of centred, nearest, got 'best'"):
+        DPCNModule(net=NET, train_spectrum_window="best")

@@ -298,20 +298,56 @@ class DPCN(nn.Module):
             image = F.pad(image, (0, pad_w, 0, pad_h), mode="replicate")
         return F.pixel_unshuffle(image, d)
 
+    def nearest_window_shifts(self, tx: Tensor, ty: Tensor, size: tuple[int, int]) -> Tensor:
+        """Per pair, the circular shift ``(rows, cols)`` of ``size`` phase-1 maps that puts the
+        source's spectrum window on the point of :attr:`spectrum_window_grid`'s grid nearest
+        to where the template's centre lies in the source (``tx``, ``ty``: ``(B,)`` true
+        translation in image pixels): the window the inference grid would ideally pick.
+        ``(B, 2)`` integers; all zero for a grid of 1."""
+        height, width = size
+        d = self.rotation_scale_downsample
+        half = self.spectrum_window_grid // 2
+        steps = []
+        for offset, side in ((ty, height), (tx, width)):
+            step = round(self.spectrum_window_step * side)
+            # The template's centre is at (cx + tx, cy + ty) in the source: rolling by -t / d
+            # brings it to the centre of phase 1's maps.
+            k = torch.round(-offset.detach() / (d * step)).clamp(-half, half)
+            steps.append(k * step)
+        return torch.stack(steps, dim=1).to(torch.long)
+
     def rotation_scale(
-        self, template: Tensor, source: Tensor, hypotheses: int = 1, window_grid: int = 1, views: int = 1
+        self,
+        template: Tensor,
+        source: Tensor,
+        hypotheses: int = 1,
+        window_grid: int = 1,
+        views: int = 1,
+        source_shifts: Tensor | None = None,
     ) -> tuple[RotationScale, dict[str, Tensor]]:
         """Phase 1: features, then rotation (mod 180 degrees) and scale (and the next
         strongest peaks, ``hypotheses`` in all, as ``candidate_*``), with the source spectrum
         under a ``window_grid x window_grid`` grid of windows and the surfaces of ``views``
         dihedral views of the pair averaged.
 
+        ``source_shifts`` (training, with one window and one view): ``(B, 2)`` integer circular
+        shifts ``(rows, cols)`` of each pair's source features before the spectrum, which moves
+        its window (see :meth:`nearest_window_shifts`).
+
         The features are ``(B, C, H / d, W / d)`` with ``d = rotation_scale_downsample`` (of
-        the first view, the pair as given).
+        the first view, the pair as given), unshifted.
         """
         rs_template = self.rs_template(self.rotation_scale_unet_input(dihedral_views(template, views)))
         rs_source = self.rs_source(self.rotation_scale_unet_input(dihedral_views(source, views)))
-        rs = self.rotation_scale_from_features(rs_template, rs_source, hypotheses, window_grid, views)
+        windowed = rs_source
+        if source_shifts is not None:
+            if views != 1 or window_grid != 1 or source_shifts.shape != (rs_source.shape[0], 2):
+                raise ValueError("source_shifts takes one (rows, cols) shift per pair, with one view and one window")
+            shifts = source_shifts.tolist()
+            windowed = torch.stack(
+                [torch.roll(f, tuple(s), dims=(-2, -1)) for f, s in zip(rs_source, shifts, strict=True)]
+            )
+        rs = self.rotation_scale_from_features(rs_template, windowed, hypotheses, window_grid, views)
         batch = template.shape[0]
         return rs, {"rs_template": rs_template[:batch], "rs_source": rs_source[:batch]}
 

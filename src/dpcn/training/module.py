@@ -22,6 +22,9 @@ from .losses import DPCNLoss, rotation_scale_target, translation_target
 __all__ = ["DPCNModule", "ClassicalModule", "load_matcher", "CheckpointError"]
 
 
+TRAIN_SPECTRUM_WINDOWS = ("centred", "nearest")
+
+
 def _warmup_cosine(step: int, total: int, warmup: float = 0.1, floor: float = 0.04) -> float:
     """Learning-rate factor: cosine ramp from ``floor`` to 1 over the first ``warmup`` of the
     run, then cosine decay to 0 at ``total`` steps."""
@@ -93,6 +96,11 @@ class DPCNModule(_EvaluationMixin, L.LightningModule):
             CPU but learns its easier task much sooner; below 1, the time saved goes to more
             phase-1 steps (every training pair is an independent random draw, so the first
             pairs of a batch are a random subset).
+        train_spectrum_window: where phase 1 takes each training pair's source spectrum:
+            ``"centred"`` (the centred window, as at inference without the window grid) or
+            ``"nearest"`` (the window of the inference grid, ``net.spectrum_window_grid``,
+            nearest to where the template's centre lies in the source: the one the grid
+            would ideally pick, so phase 1 learns from windows that share their content).
         translation_threshold: the paper's translation accuracy threshold (px) for metrics.
     """
 
@@ -108,6 +116,7 @@ class DPCNModule(_EvaluationMixin, L.LightningModule):
         warmup_epochs: int = 1,
         warp_grad: bool = False,
         translation_fraction: float = 1.0,
+        train_spectrum_window: str = "centred",
         translation_threshold: float = 5.0,
         max_epochs: int | None = None,
     ) -> None:
@@ -118,6 +127,11 @@ class DPCNModule(_EvaluationMixin, L.LightningModule):
         check_int("model.warmup_epochs", warmup_epochs, low=0)
         check_number("model.translation_fraction", translation_fraction, low=0.0, high=1.0, low_open=True)
         check_number("model.translation_threshold", translation_threshold, low=0.0, low_open=True)
+        if train_spectrum_window not in TRAIN_SPECTRUM_WINDOWS:
+            raise ValueError(
+                f"model.train_spectrum_window must be one of {', '.join(TRAIN_SPECTRUM_WINDOWS)}, "
+                f"got {train_spectrum_window!r}"
+            )
         for t in [temperature] if isinstance(temperature, (int, float, str)) else list(temperature):
             check_number("model.temperature", t, low=0.0, low_open=True)
         self.save_hyperparameters()
@@ -157,7 +171,12 @@ class DPCNModule(_EvaluationMixin, L.LightningModule):
 
     def _training_loss(self, template: Tensor, source: Tensor, gt: Tensor) -> Tensor:
         tx, ty, angle, scale = gt.unbind(dim=1)
-        rs, rs_features = self.model.rotation_scale(template, source)
+        shifts = None
+        if self.hparams.get("train_spectrum_window", "centred") == "nearest":
+            d = self.model.rotation_scale_downsample
+            size = (math.ceil(template.shape[-2] / d), math.ceil(template.shape[-1] / d))
+            shifts = self.model.nearest_window_shifts(tx, ty, size)
+        rs, rs_features = self.model.rotation_scale(template, source, source_shifts=shifts)
         align = self._alignment(rs_features, gt) if self.loss.weights["kl_align"] else (None, None)
 
         # Phase 1's angle is known modulo 180 degrees; take the half-turn closest to the truth
