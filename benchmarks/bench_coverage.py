@@ -1,0 +1,109 @@
+"""Map-pair accuracy by how much of the template crop the ground robot observed.
+
+A ground robot's map covers only what its sensors saw (the ``*_mask`` rasters), so a
+template crop can be mostly no-data; the data configs keep crops at least ``data.min_valid``
+observed (0.3). This evaluates a trained checkpoint (or, without ``--checkpoint``, the
+classical estimator) on the fixed validation pairs (held-out regions) and test pairs
+(held-out scene) of a map data config and prints the paper's accuracies per bin of the
+template's observed fraction, so that a held-out scene whose robot saw less can be told
+apart from one the model does not generalise to.
+
+    python benchmarks/bench_coverage.py --data s2d --checkpoint CKPT [--bins 0.3 0.45 0.6] \
+        [--stages validate,test] [-- data.builtin_scenes=32 rotation_views=4 ...]
+
+Everything after ``--`` is a Hydra override of the evaluation config (as for
+``python -m dpcn test``); ``rotation_views=``, ``spectrum_window_grid=`` and
+``rotation_hypotheses=`` replace the checkpoint's inference settings.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import torch
+from hydra import compose, initialize_config_dir
+from hydra.utils import instantiate
+
+from dpcn.metrics import pose_errors, summarize, thresholds_for
+from dpcn.training.module import CheckpointError, load_matcher
+
+CONF = Path(__file__).resolve().parents[1] / "conf"
+STAGES = {"validate": ("val", "held-out regions"), "test": ("test", "held-out scene")}
+
+
+def _errors_and_coverage(matcher, loader) -> tuple[torch.Tensor, torch.Tensor]:
+    errors, coverage = [], []
+    with torch.no_grad():
+        for batch in loader:
+            if "template_mask" not in batch:
+                raise SystemExit("bench_coverage: this data config has no no-data masks (pick a map pair: l2d, ...)")
+            pose = matcher.match(batch["template"], batch["source"])
+            errors.append(pose_errors(pose.as_tensor().cpu(), batch["pose"]))
+            coverage.append(batch["template_mask"].flatten(1).mean(dim=1).double())
+    return torch.cat(errors), torch.cat(coverage)
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--data", default="s2d", help="map data config (l2d, l2sat, s2d, s2sat)")
+    parser.add_argument("--checkpoint", help="DPCN checkpoint (default: the classical estimator)")
+    parser.add_argument("--bins", type=float, nargs="+", default=[0.3, 0.45, 0.6], help="bin edges (fraction)")
+    parser.add_argument("--stages", default="validate,test")
+    parser.add_argument("overrides", nargs="*", help="Hydra overrides (after --)")
+    args = parser.parse_args(argv)
+    stages = [s.strip() for s in args.stages.split(",") if s.strip()]
+    unknown = [s for s in stages if s not in STAGES]
+    if unknown or not stages:
+        parser.error(f"--stages takes validate and/or test, got {args.stages!r}")
+    edges = sorted(set([0.0, *args.bins, 1.0 + 1e-9]))
+    if any(not 0.0 <= e <= 1.0 + 1e-9 for e in edges):
+        parser.error(f"--bins are fractions in [0, 1], got {args.bins}")
+
+    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+        cfg = compose("config", overrides=[f"data={args.data}", *args.overrides])
+    if args.checkpoint:
+        try:
+            matcher = load_matcher(
+                args.checkpoint,
+                rotation_hypotheses=cfg.rotation_hypotheses,
+                spectrum_window_grid=cfg.spectrum_window_grid,
+                rotation_views=cfg.rotation_views,
+            )
+        except CheckpointError as e:
+            raise SystemExit(f"bench_coverage: {e}") from None
+        name = f"DPCN ({Path(args.checkpoint).name})"
+    else:
+        with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+            classical = compose("config", overrides=[f"data={args.data}", "model=classical", *args.overrides])
+        matcher = instantiate(classical.model, _convert_="all")
+        name = "classical"
+    datamodule = instantiate(cfg.data)
+    limit = float(cfg.data.translation_threshold)
+    thresholds = thresholds_for(limit)
+    t = f"{limit:g}"
+    columns = [(f"x@{t}", f"acc_x@{t}"), (f"y@{t}", f"acc_y@{t}"), ("rot@1", "acc_rot@1"), ("s@0.2", "acc_scale@0.2")]
+    print(f"{name} on {args.data}, accuracy (%) by observed fraction of the template crop")
+    print(f"{'pairs':<30} {'n':>4} " + " ".join(f"{c:>7}" for c, _ in columns))
+    for stage in stages:
+        split, label = STAGES[stage]
+        datamodule.setup(stage)
+        loader = datamodule.val_dataloader() if split == "val" else datamodule.test_dataloader()
+        errors, coverage = _errors_and_coverage(matcher, loader)
+        rows = [(f"{label}, all", torch.ones_like(coverage, dtype=torch.bool))]
+        for lo, hi in zip(edges[:-1], edges[1:], strict=True):
+            rows.append(
+                (f"{label}, [{lo:.2f}, {min(hi, 1.0):.2f}{']' if hi > 1 else ')'}", (coverage >= lo) & (coverage < hi))
+            )
+        for title, selected in rows:
+            n = int(selected.sum())
+            if n == 0:
+                continue
+            metrics = summarize(errors[selected], thresholds)
+            print(f"{title:<30} {n:>4} " + " ".join(f"{metrics[key]:>7.1f}" for _, key in columns))
+    sys.stdout.flush()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,40 @@
+"""The coverage benchmark: real configs, real scenes on disk, the classical estimator."""
+
+import importlib.util
+from pathlib import Path
+
+import pytest
+
+from dpcn.data.scene import make_dataset
+
+
+@pytest.fixture(scope="module")
+def coverage():
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_coverage.py"
+    spec = importlib.util.spec_from_file_location("bench_coverage", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_bins_add_up_and_every_crop_meets_min_valid(coverage, tmp_path, capsys):
+    root = make_dataset(tmp_path / "maps", n_scenes=3, seed=3, size=(720, 720), gap=0)
+    overrides = [f"data.root={root}", "image_size=96", "data.dataset.translation=20", "data.test_length=24"]
+    coverage.main(["--data", "s2d", "--stages", "test", "--bins", "0.3", "0.6", "--", *overrides])
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0].startswith("classical on s2d")
+    rows = {line[:30].strip(): line[30:].split() for line in lines[2:]}
+    assert rows["held-out scene, all"][0] == "24"
+    binned = [int(v[0]) for k, v in rows.items() if k.startswith("held-out scene, [")]
+    assert sum(binned) == 24
+    assert "held-out scene, [0.00, 0.30)" not in rows  # data.min_valid = 0.3 holds for every crop
+    assert all(0.0 <= float(v) <= 100.0 for values in rows.values() for v in values[1:])
+
+
+def test_bad_arguments_are_refused(coverage):
+    with pytest.raises(SystemExit):
+        coverage.main(["--stages", "fit"])
+    with pytest.raises(SystemExit):
+        coverage.main(["--bins", "1.5"])
+    with pytest.raises(SystemExit, match="checkpoint not found: /nonexistent.ckpt"):
+        coverage.main(["--checkpoint", "/nonexistent.ckpt"])
