@@ -10,7 +10,9 @@ accuracy within the paper's thresholds, the strict accuracies, and the time per 
     # Table 2/3 (maps): l2sat on the built-in scenes; held-out region (validate) and held-out scene (test)
     python benchmarks/bench_training.py --data l2sat --stages validate,test -- trainer.max_epochs=6
 
-Everything after ``--`` is passed to ``fit`` as Hydra overrides. Outputs go to ``--out``.
+Everything after ``--`` is passed to ``fit`` as Hydra overrides; the evaluations repeat those of
+the data (``data.*``: e.g. ``data.root=`` or ``data.builtin_scenes=``), ``image_size``,
+``channels`` and ``seed``. Outputs go to ``--out``.
 """
 
 from __future__ import annotations
@@ -48,6 +50,16 @@ def read_metrics(path: Path) -> dict[str, float]:
     return {k: float(v) for k, v in row.items() if k != "name"}
 
 
+def evaluation_overrides(overrides: list[str]) -> list[str]:
+    """The fit overrides that the evaluations repeat: the image size and channels (the model is
+    built for them), the seed, and every ``data.`` key (where the maps are, how many built-in
+    scenes, pose ranges, ``min_valid``...: the pairs evaluated must come from the data trained
+    on). Keys of the training alone (``data.epoch_size``, ``data.batch_size``...) are
+    harmless there."""
+    keys = ("image_size", "channels", "seed")
+    return [o for o in overrides if o.split("=")[0].lstrip("+~") in keys or o.lstrip("+~").startswith("data.")]
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--data", default="sim_heterogeneous", help="training data config")
@@ -67,8 +79,7 @@ def main() -> None:
     ckpt = best[-1] if args.ckpt == "best" and best else ckpts / "last.ckpt"
     print(f"fit data={args.data} {' '.join(args.overrides)}: {fit_seconds / 60:.1f} min; evaluating {ckpt.name}")
 
-    # Evaluation keeps the training run's image size and channels (the model is built for them).
-    shared = [o for o in args.overrides if o.split("=")[0] in ("image_size", "channels", "seed")]
+    shared = evaluation_overrides(args.overrides)
     rows = []
     for data in (args.evaluate or args.data).split(","):
         for stage in args.stages.split(","):
