@@ -1,8 +1,8 @@
 """Map-pair accuracy by how much of the template crop the ground robot observed.
 
 A ground robot's map covers only what its sensors saw (the ``*_mask`` rasters), so a
-template crop can be mostly no-data; the data configs keep crops at least ``data.min_valid``
-observed (0.3). This evaluates a trained checkpoint (or, without ``--checkpoint``, the
+template crop can be mostly no-data; the data configs keep crops at least ``data.dataset.min_valid``
+observed (0.5). This evaluates a trained checkpoint (or, without ``--checkpoint``, the
 classical estimator) on the fixed validation pairs (held-out regions) and test pairs
 (held-out scene) of a map data config and prints the paper's accuracies per bin of the
 template's observed fraction, so that a held-out scene whose robot saw less can be told

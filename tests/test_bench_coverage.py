@@ -20,14 +20,14 @@ def coverage():
 def test_bins_add_up_and_every_crop_meets_min_valid(coverage, tmp_path, capsys):
     root = make_dataset(tmp_path / "maps", n_scenes=3, seed=3, size=(720, 720), gap=0)
     overrides = [f"data.root={root}", "image_size=96", "data.dataset.translation=20", "data.test_length=24"]
-    coverage.main(["--data", "s2d", "--stages", "test", "--bins", "0.3", "0.6", "--", *overrides])
+    coverage.main(["--data", "s2d", "--stages", "test", "--bins", "0.5", "0.6", "--", *overrides])
     lines = capsys.readouterr().out.splitlines()
     assert lines[0].startswith("classical on s2d")
     rows = {line[:30].strip(): line[30:].split() for line in lines[2:]}
     assert rows["held-out scene, all"][0] == "24"
     binned = [int(v[0]) for k, v in rows.items() if k.startswith("held-out scene, [")]
     assert sum(binned) == 24
-    assert "held-out scene, [0.00, 0.30)" not in rows  # data.min_valid = 0.3 holds for every crop
+    assert "held-out scene, [0.00, 0.50)" not in rows  # data.dataset.min_valid = 0.5 holds for every crop
     assert all(0.0 <= float(v) <= 100.0 for values in rows.values() for v in values[1:])
 
 

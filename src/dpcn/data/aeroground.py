@@ -291,7 +291,7 @@ class MapPairs(Dataset):
         rotation: tuple[float, float] = (-180.0, 180.0),
         scale: tuple[float, float] = (0.8, 1.2),
         channels: int = 1,
-        min_valid: float = 0.3,
+        min_valid: float = 0.5,
         max_tries: int = 20,
     ) -> None:
         if pair not in PAIRS:
