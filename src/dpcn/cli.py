@@ -205,7 +205,7 @@ def run_fit(cfg: DictConfig) -> None:
     if trainer.global_rank == 0:
         best = next((c.best_model_path for c in trainer.checkpoint_callbacks if c.monitor), "")
         print(f"checkpoints: {run_dir / 'checkpoints'} (best: {Path(best).name if best else '-'}, last: last.ckpt)")
-        table = module.report("val", f"{datamodule.name} (val)", run_dir)
+        table = module.report("val", f"{datamodule.name} (val, last epoch)", run_dir)
         if table:
             print(table)
 
