@@ -11,6 +11,7 @@ import torch
 from hydra import compose, initialize_config_dir
 
 CONF = Path(__file__).resolve().parents[1] / "conf"
+BENCHMARKS = CONF.parent / "benchmarks"
 
 PHOTOS = ("camera", "astronaut", "coffee", "chelsea", "rocket", "brick", "gravel", "immunohistochemistry")
 
@@ -52,3 +53,13 @@ def compose_config(*overrides: str, return_hydra_config: bool = False):
     """The project's real ``conf/config.yaml`` composed with command-line style overrides."""
     with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
         return compose("config", overrides=list(overrides), return_hydra_config=return_hydra_config)
+
+
+def load_benchmark(name: str):
+    """A script of ``benchmarks/`` imported as a module (they are not part of the package)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(name, BENCHMARKS / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module

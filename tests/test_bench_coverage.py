@@ -1,20 +1,15 @@
 """The coverage benchmark: real configs, real scenes on disk, the classical estimator."""
 
-import importlib.util
-from pathlib import Path
-
 import pytest
 
 from dpcn.data.scene import make_dataset
 
+from .conftest import load_benchmark
+
 
 @pytest.fixture(scope="module")
 def coverage():
-    path = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_coverage.py"
-    spec = importlib.util.spec_from_file_location("bench_coverage", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_benchmark("bench_coverage")
 
 
 def test_bins_add_up_and_every_crop_meets_min_valid(coverage, tmp_path, capsys):

@@ -1,8 +1,5 @@
 """The sim-ceiling benchmark leans on private parts of dpcn.data.simulation: keep it honest."""
 
-import importlib.util
-from pathlib import Path
-
 import pytest
 import torch
 
@@ -10,14 +7,12 @@ import dpcn.data.simulation as sim
 from dpcn.models import DPCN
 from dpcn.pose import wrap_angle
 
+from .conftest import load_benchmark
+
 
 @pytest.fixture(scope="module")
 def ceiling():
-    path = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_sim_ceiling.py"
-    spec = importlib.util.spec_from_file_location("bench_sim_ceiling", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_benchmark("bench_sim_ceiling")
 
 
 def test_ideal_boundaries_give_every_pose_and_pixels_match_the_dataset(ceiling):

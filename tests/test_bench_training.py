@@ -1,15 +1,6 @@
 """bench_training.py evaluates on the pairs it trained on."""
 
-import importlib.util
-from pathlib import Path
-
-
-def _bench():
-    path = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_training.py"
-    spec = importlib.util.spec_from_file_location("bench_training", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+from .conftest import load_benchmark
 
 
 def test_evaluations_repeat_the_data_overrides_of_fit():
@@ -24,7 +15,7 @@ def test_evaluations_repeat_the_data_overrides_of_fit():
         "seed=3",
         "model.train_spectrum_window=nearest",
     ]
-    assert _bench().evaluation_overrides(fit) == [
+    assert load_benchmark("bench_training").evaluation_overrides(fit) == [
         "data.builtin_scenes=32",
         "image_size=128",
         "data.root=/maps",

@@ -304,17 +304,11 @@ class DPCN(nn.Module):
         to where the template's centre lies in the source (``tx``, ``ty``: ``(B,)`` true
         translation in image pixels): the window the inference grid would ideally pick.
         ``(B, 2)`` integers; all zero for a grid of 1."""
-        height, width = size
-        d = self.rotation_scale_downsample
-        half = self.spectrum_window_grid // 2
-        steps = []
-        for offset, side in ((ty, height), (tx, width)):
-            step = round(self.spectrum_window_step * side)
-            # The template's centre is at (cx + tx, cy + ty) in the source: rolling by -t / d
-            # brings it to the centre of phase 1's maps.
-            k = torch.round(-offset.detach() / (d * step)).clamp(-half, half)
-            steps.append(k * step)
-        return torch.stack(steps, dim=1).to(torch.long)
+        grid = torch.tensor(self.spectrum_window_shifts(*size, self.spectrum_window_grid), device=tx.device)
+        # The template's centre is at (cx + tx, cy + ty) in the source: rolling phase 1's maps
+        # by -t / d would bring it to their centre; take the grid's shift nearest to that.
+        wanted = -torch.stack([ty, tx], dim=1).detach() / self.rotation_scale_downsample
+        return grid[torch.cdist(wanted.to(torch.float64), grid.to(torch.float64)).argmin(dim=1)]
 
     def rotation_scale(
         self,
