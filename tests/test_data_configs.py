@@ -91,6 +91,12 @@ def test_missing_root_is_a_clear_error(tmp_path):
         dm.setup("fit")
 
 
+def test_a_bad_dataset_value_names_its_key(tmp_path):
+    dm = instantiate(compose_config("data=l2sat", f"data.root={tmp_path}", "data.dataset.min_valid=2").data)
+    with pytest.raises(ValueError, match=r"^data\.dataset: min_valid must be in \[0, 1\], got 2"):
+        dm.setup("fit")
+
+
 def test_csv_config(tmp_path):
     template = photo("camera", (64, 64))
     (tmp_path / "template").mkdir()

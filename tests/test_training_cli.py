@@ -191,6 +191,7 @@ def test_predict_with_a_checkpoint(trained, tmp_path):
         (["fit", "model.lr=abc"], "model.lr must be a finite number > 0, got 'abc'"),
         (["fit", "model.net.sigma=abc"], "model.net.sigma must be a finite number >= 0, got 'abc'"),
         (["fit", "trainer.max_epochs=abc"], "trainer.max_epochs must be an integer >= -1, got 'abc'"),
+        (["fit", "+data.dataset.bogus=1"], "data.dataset: SimulatedPairs.__init__() got an unexpected keyword"),
     ],
 )
 def test_bad_runs_fail_in_one_line(tmp_path, args, message):

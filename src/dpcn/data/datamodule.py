@@ -139,7 +139,13 @@ class PairDataModule(L.LightningDataModule):
     def build(self, split: str) -> Dataset:
         if split not in self.datasets:
             kwargs = dict(self.split_kwargs.get(split, {}))
-            self.datasets[split] = self.factory(length=self.lengths[split], seed=self.seeds[split], **kwargs)
+            try:
+                self.datasets[split] = self.factory(length=self.lengths[split], seed=self.seeds[split], **kwargs)
+            except (ValueError, TypeError) as error:
+                if type(error) not in (ValueError, TypeError):
+                    raise  # data errors (DataError, DpcnInputError) already name their file or row
+                # A bad `data.dataset.*` value: the constructor's message names the argument only.
+                raise type(error)(f"data.dataset: {error}") from error
         return self.datasets[split]
 
     def setup(self, stage: str | None = None) -> None:
