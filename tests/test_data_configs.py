@@ -91,6 +91,21 @@ def test_missing_root_is_a_clear_error(tmp_path):
         dm.setup("fit")
 
 
+@pytest.mark.parametrize(
+    "args,epochs",
+    [
+        ([], 12),  # the simulated pairs: the trainer config's length
+        (["data=l2d"], 5),  # the map pairs set their own (within 30 min on 2 CPU cores)
+        (["data=l2sat", "trainer=gpu"], 5),
+        (["data=s2sat"], 5),
+        (["data=s2d", "trainer.max_epochs=3"], 3),  # the command line wins
+        (["data=l2sat", "experiment=quick"], 2),  # and so does an experiment
+    ],
+)
+def test_training_length_per_data_config(args, epochs):
+    assert compose_config(*args).trainer.max_epochs == epochs
+
+
 def test_a_bad_dataset_value_names_its_key(tmp_path):
     dm = instantiate(compose_config("data=l2sat", f"data.root={tmp_path}", "data.dataset.min_valid=2").data)
     with pytest.raises(ValueError, match=r"^data\.dataset: min_valid must be in \[0, 1\], got 2"):
