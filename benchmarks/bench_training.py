@@ -8,7 +8,7 @@ accuracy within the paper's thresholds, the strict accuracies, and the time per 
     # Table 1 (simulation): train on heterogeneous pairs, test on heterogeneous and dynamic ones
     python benchmarks/bench_training.py --data sim_heterogeneous --evaluate sim_heterogeneous,sim_dynamic
     # Table 2/3 (maps): l2sat on the built-in scenes; held-out region (validate) and held-out scene (test)
-    python benchmarks/bench_training.py --data l2sat --stages validate,test -- trainer.max_epochs=6
+    python benchmarks/bench_training.py --data l2sat --stages validate,test   # 5 epochs: the data config's default
 
 Everything after ``--`` is passed to ``fit`` as Hydra overrides; the evaluations repeat those of
 the data (``data.*``: e.g. ``data.root=`` or ``data.builtin_scenes=``), ``image_size``,

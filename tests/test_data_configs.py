@@ -97,7 +97,7 @@ def test_missing_root_is_a_clear_error(tmp_path):
         ([], 12),  # the simulated pairs: the trainer config's length
         (["data=l2d"], 5),  # the map pairs set their own (within 30 min on 2 CPU cores)
         (["data=l2sat", "trainer=gpu"], 5),
-        (["data=s2sat"], 5),
+        (["data=s2sat"], 7),
         (["data=s2d", "trainer.max_epochs=3"], 3),  # the command line wins
         (["data=l2sat", "experiment=quick"], 2),  # and so does an experiment
     ],
