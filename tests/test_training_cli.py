@@ -110,25 +110,55 @@ def _weights(ckpt: Path) -> dict[str, torch.Tensor]:
     return torch.load(ckpt, weights_only=False)["state_dict"]
 
 
-@pytest.mark.parametrize("crash_after_step", [2, 3], ids=["at-epoch-end", "mid-epoch"])
-def test_interrupted_run_resumes_exactly(tmp_path, crash_after_step):
-    """A crash leaves last.ckpt with the state at the crash; `fit ckpt_path=` from it
-    ends with the very weights of the run that was never interrupted: same data, same
-    teacher-forcing draws, same learning-rate schedule."""
-    epochs = ["trainer.max_epochs=2", "model.warmup_epochs=0", "model.teacher_forcing=0.5"]
+def _check_resume(tmp_path: Path, crash_after_step: int, *extra: str) -> None:
+    epochs = ["trainer.max_epochs=2", "model.warmup_epochs=0", "model.teacher_forcing=0.5", *extra]
     fit(tmp_path / "straight", *epochs, cwd=tmp_path)
     _crashing_run(tmp_path / "crashed", crash_after_step, *epochs)
     saved = tmp_path / "crashed" / "checkpoints" / "last.ckpt"
     assert torch.load(saved, weights_only=False)["global_step"] == crash_after_step
     fit(tmp_path / "resumed", *epochs, f"ckpt_path={saved}", cwd=tmp_path)
-    straight = _weights(tmp_path / "straight/checkpoints/last.ckpt")
-    resumed = _weights(tmp_path / "resumed/checkpoints/last.ckpt")
-    assert torch.load(tmp_path / "resumed/checkpoints/last.ckpt", weights_only=False)["global_step"] == 4
-    for key, value in straight.items():
-        torch.testing.assert_close(resumed[key], value, rtol=1e-5, atol=1e-6, msg=key)
+    straight = torch.load(tmp_path / "straight/checkpoints/last.ckpt", weights_only=False)
+    resumed = torch.load(tmp_path / "resumed/checkpoints/last.ckpt", weights_only=False)
+    assert resumed["global_step"] == 4
+    # the weights (with ema_decay, the average) and, with ema_decay, the raw weights too
+    for part in ["state_dict", "current_model_state"][: 1 + ("current_model_state" in straight)]:
+        for key, value in straight[part].items():
+            torch.testing.assert_close(resumed[part][key], value, rtol=1e-5, atol=1e-6, msg=f"{part}: {key}")
     # ... and the interruption mattered: the crashed run's weights are not the final ones
     crashed = _weights(saved)
-    assert any(not torch.allclose(crashed[k], v) for k, v in straight.items() if v.is_floating_point())
+    assert any(not torch.allclose(crashed[k], v) for k, v in straight["state_dict"].items() if v.is_floating_point())
+
+
+@pytest.mark.parametrize("crash_after_step", [2, 3], ids=["at-epoch-end", "mid-epoch"])
+def test_interrupted_run_resumes_exactly(tmp_path, crash_after_step):
+    """A crash leaves last.ckpt with the state at the crash; `fit ckpt_path=` from it
+    ends with the very weights of the run that was never interrupted: same data, same
+    teacher-forcing draws, same learning-rate schedule."""
+    _check_resume(tmp_path, crash_after_step)
+
+
+def test_interrupted_run_with_weight_averaging_resumes_exactly(tmp_path):
+    """With ema_decay the checkpoint holds the average and the raw weights; both resume."""
+    _check_resume(tmp_path, 3, "ema_decay=0.5")
+    assert "averaging_state" in torch.load(tmp_path / "resumed/checkpoints/last.ckpt", weights_only=False)
+
+
+def test_weight_averaging_is_what_validates_and_reloads(tmp_path):
+    """ema_decay: validation and the checkpoint's weights are the moving average of the
+    steps' weights. With a decay near 0 the average is the last step's weights; with 0.5
+    it lags behind them; load_matcher gives the average."""
+    for decay in ("1e-12", "0.5"):
+        fit(tmp_path / decay, "trainer.max_epochs=2", f"ema_decay={decay}", cwd=tmp_path)
+    near_zero = torch.load(tmp_path / "1e-12/checkpoints/last.ckpt", weights_only=False)
+    for key, value in near_zero["current_model_state"].items():
+        torch.testing.assert_close(near_zero["state_dict"][key], value, msg=key)
+    half = torch.load(tmp_path / "0.5/checkpoints/last.ckpt", weights_only=False)
+    raw, average = half["current_model_state"], half["state_dict"]
+    assert raw.keys() == average.keys()
+    assert any(not torch.allclose(average[k], v) for k, v in raw.items())
+    matcher = load_matcher(tmp_path / "0.5/checkpoints/last.ckpt")
+    for key, value in matcher.state_dict().items():
+        torch.testing.assert_close(value, average[key], msg=key)
 
 
 def test_resume_with_more_epochs_stretches_the_schedule(tmp_path):
@@ -192,6 +222,8 @@ def test_predict_with_a_checkpoint(trained, tmp_path):
         (["fit", "model.net.sigma=abc"], "model.net.sigma must be a finite number >= 0, got 'abc'"),
         (["fit", "trainer.max_epochs=abc"], "trainer.max_epochs must be an integer >= -1, got 'abc'"),
         (["fit", "+data.dataset.bogus=1"], "data.dataset: SimulatedPairs.__init__() got an unexpected keyword"),
+        (["fit", "ema_decay=1"], "ema_decay must be a number in (0, 1) or null, got 1"),
+        (["fit", "ema_decay=abc"], "ema_decay must be a number in (0, 1) or null, got 'abc'"),
     ],
 )
 def test_bad_runs_fail_in_one_line(tmp_path, args, message):

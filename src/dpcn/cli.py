@@ -126,6 +126,9 @@ def _check_trainer(cfg: DictConfig) -> None:
         check_number("trainer.gradient_clip_val", cfg.trainer.gradient_clip_val, low=0.0)
     if cfg.get("checkpoint_every_n_steps") is not None:
         check_int("checkpoint_every_n_steps", cfg.checkpoint_every_n_steps, low=1)
+    decay = cfg.get("ema_decay")
+    if decay is not None and not (isinstance(decay, float | int) and not isinstance(decay, bool) and 0 < decay < 1):
+        raise ValueError(f"ema_decay must be a number in (0, 1) or null, got {decay!r}")
 
 
 def _trainer(cfg: DictConfig, run_dir: Path, fit: bool):
@@ -172,6 +175,12 @@ def _trainer(cfg: DictConfig, run_dir: Path, fit: bool):
             ),
             LearningRateMonitor(logging_interval="step"),
         ]
+        if cfg.get("ema_decay") is not None:
+            from lightning.pytorch.callbacks import EMAWeightAveraging
+
+            # Validation, the checkpoints' weights and the trained model are the moving
+            # average; the raw weights travel in the checkpoint too, so a resume is exact.
+            callbacks.append(EMAWeightAveraging(decay=float(cfg.ema_decay)))
     return instantiate(
         cfg.trainer,
         default_root_dir=str(run_dir),
