@@ -38,6 +38,7 @@ TIMED_SETTINGS = (  # the preset's architecture and its cost-bearing inference s
     "rotation_scale_template_channels",
     "n_angles",
     "n_radii",
+    "highpass",
     "rotation_hypotheses",
     "spectrum_window_grid",
     "spectrum_window_step",
