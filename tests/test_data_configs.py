@@ -106,6 +106,23 @@ def test_training_length_per_data_config(args, epochs):
     assert compose_config(*args).trainer.max_epochs == epochs
 
 
+@pytest.mark.parametrize(
+    "args,fraction",
+    [
+        ([], 0.25),  # tiny's share
+        (["data=l2d"], 0.25),
+        (["data=s2sat"], 0.25),
+        (["data=s2d"], 0.5),  # s2d's default model trains phase 2 on half of each batch
+        (["data=s2d", "model=tiny_full"], 0.25),  # a model named on the command line wins
+        (["data=s2d", "model.translation_fraction=1"], 1),  # and so does the setting
+    ],
+)
+def test_phase2_share_per_data_config(args, fraction):
+    assert compose_config(*args).model.translation_fraction == fraction
+    if not any(a.startswith("model") for a in args):  # a data config sets no model key of its own
+        assert compose_config(*args, "model=classical").model._target_.endswith("ClassicalModule")
+
+
 def test_a_bad_dataset_value_names_its_key(tmp_path):
     dm = instantiate(compose_config("data=l2sat", f"data.root={tmp_path}", "data.dataset.min_valid=2").data)
     with pytest.raises(ValueError, match=r"^data\.dataset: min_valid must be in \[0, 1\], got 2"):

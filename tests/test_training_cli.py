@@ -300,7 +300,7 @@ def test_phase1_pooling_is_a_config_override():
     ("overrides", "model"),
     [
         (["data=l2sat"], "tiny_full"),
-        (["data=s2d"], "tiny_full"),
+        (["data=s2d"], "tiny_full_s2d"),  # tiny_full, phase 2 on half of each batch
         (["data=sim_heterogeneous"], "tiny"),
         (["data=l2d", "model=tiny"], "tiny"),  # the command line wins, in either order
         (["model=tiny", "data=l2d"], "tiny"),
