@@ -176,7 +176,12 @@ def _trainer(cfg: DictConfig, run_dir: Path, fit: bool):
             LearningRateMonitor(logging_interval="step"),
         ]
         if cfg.get("ema_decay") is not None:
-            from lightning.pytorch.callbacks import EMAWeightAveraging
+            try:
+                from lightning.pytorch.callbacks import EMAWeightAveraging
+            except ImportError:  # Lightning 2.6+; pyproject allows older
+                raise CliError(
+                    "ema_decay needs lightning>=2.6 (EMAWeightAveraging): pip install -U lightning"
+                ) from None
 
             # Validation, the checkpoints' weights and the trained model are the moving
             # average; the raw weights travel in the checkpoint too, so a resume is exact.
