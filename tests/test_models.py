@@ -266,6 +266,32 @@ def test_phase2_picks_the_rotation_hypothesis_with_a_translation_peak():
         model.translation(template.repeat(2, 1, 1, 1), unwarped, angle, scale)
 
 
+def test_translation_turns_are_what_the_half_turn_check_compares():
+    """Per-turn phase 2: the upright surface of the right un-warp peaks at the shift; the
+    half-turned one, computed from its own U-Net pass, is the other hypothesis that
+    ``translation`` chooses against."""
+    image = photo("camera", (128, 128))
+    source = torch.from_numpy(cv2_warp(image, 6.0, -4.0, 35.0, 1.1))[None, None]
+    template = torch.from_numpy(image)[None, None]
+    model = DPCN(base_channels=2, depth=1, input_skip=True, image_size=(128, 128)).eval()
+    for unwarp_angle in (35.0, 215.0):
+        angle, scale = torch.tensor([unwarp_angle]), torch.tensor([1.1])
+        unwarped = unwarp_rotation_scale(source, angle, scale)
+        with torch.no_grad():
+            turns, ft, fs = model.translation_turns(template, unwarped, angle, scale)
+            chosen, _, _ = model.translation(template, unwarped, angle, scale)
+            (upright_only,), _, _ = model.translation_turns(template, unwarped, angle, scale, half_turn_too=False)
+            turned_features = model.t_source(half_turn(unwarped))
+        assert len(turns) == 2 and len(fs) == 2 and ft.shape == (1, 1, 128, 128)
+        torch.testing.assert_close(fs[1], turned_features)
+        torch.testing.assert_close(upright_only.surface, turns[0].surface)
+        assert angle_error(turns[1].angle, unwarp_angle + 180.0) < 1e-4
+        right = 0 if unwarp_angle == 35.0 else 1
+        assert float(turns[right].confidence) > float(turns[1 - right].confidence)
+        torch.testing.assert_close(chosen.surface, turns[right].surface)
+        assert angle_error(chosen.angle, 35.0) < 1e-4
+
+
 def test_rotation_hypotheses_keep_a_right_first_peak_and_are_validated():
     torch.manual_seed(0)
     image = photo("astronaut", (128, 128))

@@ -373,6 +373,32 @@ class DPCN(nn.Module):
             views=views,
         )
 
+    def translation_turns(
+        self, template: Tensor, unwarped_source: Tensor, angle: Tensor, scale: Tensor, half_turn_too: bool = True
+    ) -> tuple[list[Translation], Tensor, tuple[Tensor, ...]]:
+        """Phase 2 per half-turn hypothesis, without choosing: the source as un-warped and,
+        with ``half_turn_too``, turned by half a turn (its own source U-Net pass: a CNN is not
+        equivariant to the turn, so this is what the half-turn check compares).
+
+        Args:
+            template: ``(B, C, H, W)``.
+            unwarped_source, angle, scale: ``(B * K, C, H, W)``, ``(B * K,)``, ``(B * K,)``,
+                ``K`` candidates per pair, pair-major.
+
+        Returns:
+            one :class:`Translation` ``(B * K,)`` per hypothesis (upright first; the second's
+            angle is ``angle + 180``), the template's phase-2 features ``(B, C', H, W)`` and
+            the source's per hypothesis.
+        """
+        k = unwarped_source.shape[0] // template.shape[0]
+        ft = self.t_template(template)
+        turns = (unwarped_source, half_turn(unwarped_source)) if half_turn_too else (unwarped_source,)
+        fs_all = self.t_source(torch.cat(turns)).chunk(len(turns))
+        ft_k = ft.repeat_interleave(k, dim=0) if k > 1 else ft
+        kw = dict(resolve_180=False, sigma=self.sigma, temperature=self.temperature, window=self.window)
+        results = [estimate_translation(ft_k, fs, angle + 180.0 * turn, scale, **kw) for turn, fs in enumerate(fs_all)]
+        return results, ft, fs_all
+
     def translation(
         self,
         template: Tensor,
@@ -401,19 +427,14 @@ class DPCN(nn.Module):
         k = unwarped_source.shape[0] // batch
         if k < 1 or unwarped_source.shape[0] != batch * k:
             raise ValueError(f"{unwarped_source.shape[0]} un-warped sources for {batch} templates (need B * K)")
-        ft = self.t_template(template)
-        turns = (unwarped_source, half_turn(unwarped_source)) if resolve_180 else (unwarped_source,)
-        fs_all = self.t_source(torch.cat(turns)).chunk(len(turns))
-        ft_k = ft.repeat_interleave(k, dim=0) if k > 1 else ft
-        kw = dict(resolve_180=False, sigma=self.sigma, temperature=self.temperature, window=self.window)
-        results = [estimate_translation(ft_k, fs, angle + 180.0 * turn, scale, **kw) for turn, fs in enumerate(fs_all)]
+        results, ft, fs_all = self.translation_turns(template, unwarped_source, angle, scale, resolve_180)
 
         def candidates(values: list[Tensor]) -> Tensor:  # (B * K, ...) per turn -> (B, K * turns, ...)
             return torch.stack([v.view(batch, k, *v.shape[1:]) for v in values], dim=2).flatten(1, 2)
 
         confidence = candidates([r.confidence for r in results])
         if valid is not None:
-            confidence = confidence.masked_fill(~valid.repeat_interleave(len(turns), dim=1), -torch.inf)
+            confidence = confidence.masked_fill(~valid.repeat_interleave(len(results), dim=1), -torch.inf)
         choice = confidence.argmax(dim=1)
         rows = torch.arange(batch, device=choice.device)
 
@@ -430,7 +451,7 @@ class DPCN(nn.Module):
         return (
             tr,
             {"t_template": ft, "t_source": pick(list(fs_all))},
-            torch.div(choice, len(turns), rounding_mode="floor"),
+            torch.div(choice, len(results), rounding_mode="floor"),
         )
 
     def forward(self, template: Tensor, source: Tensor) -> DPCNOutput:
