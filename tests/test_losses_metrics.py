@@ -15,6 +15,7 @@ from dpcn.training.losses import (
     DPCNLoss,
     expectation_l1,
     gaussian_target,
+    half_turn_nll,
     one_peak_kl,
     rotation_scale_target,
     translation_target,
@@ -132,7 +133,9 @@ def test_loss_configs_take_per_term_overrides(choice, expected):
     cfg = compose_config(f"loss={choice}", "loss.l1_rotation=0.1", "loss.kl_translation=3")
     loss = DPCNLoss(**instantiate(cfg.loss))
     # the extra alignment term: on in the default loss, off in the paper's losses
-    assert loss.weights == pytest.approx({**expected, "kl_align": 1.0 if choice == "default" else 0.0})
+    assert loss.weights == pytest.approx(
+        {**expected, "kl_align": 1.0 if choice == "default" else 0.0, "kl_half_turn": 0.0}
+    )
 
 
 def test_alignment_term_is_off_by_default_and_needs_its_surface():
@@ -150,3 +153,47 @@ def test_alignment_term_is_off_by_default_and_needs_its_surface():
     torch.testing.assert_close(out.total, without.total + 0.5 * expected)
     with pytest.raises(ValueError, match=r"loss\.kl_align must be a finite number >= 0"):
         DPCNLoss(kl_align=-1.0)
+
+
+def test_half_turn_term_is_the_one_peak_kl_over_both_surfaces_minus_the_upright_one():
+    """Independent reference: one softmax over the two surfaces side by side, the Gaussian
+    target on the upright half only."""
+    torch.manual_seed(0)
+    upright, turned = torch.randn(2, 3, 8, 8, dtype=torch.float64).unbind(0)
+    centre = torch.tensor([[1.0, 2.0], [5.5, 6.5], [4.0, 0.5]], dtype=torch.float64)
+    t = 0.3
+    target = gaussian_target((8, 8), centre, 1.5, (True, True))
+    joint_target = torch.cat([target, torch.zeros_like(target)], dim=-1).flatten(1)
+    log_p = torch.log_softmax((torch.cat([upright, turned], dim=-1) / t).flatten(1), dim=1)
+    joint_kl = (joint_target * (torch.log(joint_target.clamp_min(1e-30)) - log_p)).sum(dim=1)
+    upright_kl = one_peak_kl(upright, centre, t, 1.5, (True, True))
+    torch.testing.assert_close(half_turn_nll(upright, turned, t), joint_kl - upright_kl)
+    # A turned surface far below the upright one costs nothing; far above, its height gap.
+    assert half_turn_nll(upright, upright - 100.0, 1.0).max() < 1e-30
+    torch.testing.assert_close(half_turn_nll(upright, upright + 50.0, 1.0), torch.full((3,), 50.0, dtype=torch.float64))
+
+
+def test_gradcheck_half_turn_term():
+    torch.manual_seed(0)
+    upright, turned = torch.rand(2, 2, 6, 6, dtype=torch.float64).unbind(0)
+    temperature = torch.tensor(0.2, dtype=torch.float64)
+    inputs = (upright.requires_grad_(), turned.requires_grad_(), temperature.requires_grad_())
+    assert gradcheck(half_turn_nll, inputs)
+
+
+def test_half_turn_term_is_off_by_default_and_needs_its_surface():
+    surface = torch.randn(2, 8, 8, dtype=torch.float64)
+    centre = torch.tensor([[1.0, 2.0], [5.5, 6.5]], dtype=torch.float64)
+    temperatures = torch.tensor([0.1, 0.2], dtype=torch.float64)
+    assert DPCNLoss().weights["kl_half_turn"] == 0.0
+    loss = DPCNLoss(kl_half_turn=0.5)
+    with pytest.raises(ValueError, match="kl_half_turn > 0 needs phase 2's surface for the half-turned source"):
+        loss(surface, centre, surface, centre, temperatures)
+    turned = surface.flip(-1)
+    out = loss(surface, centre, surface, centre, temperatures, None, None, turned)
+    expected = half_turn_nll(surface, turned, 0.2).mean()  # phase 2's temperature
+    torch.testing.assert_close(out.terms["kl_half_turn"], expected)
+    without = DPCNLoss()(surface, centre, surface, centre, temperatures)
+    torch.testing.assert_close(out.total, without.total + 0.5 * expected)
+    with pytest.raises(ValueError, match=r"loss\.kl_half_turn must be a finite number >= 0"):
+        DPCNLoss(kl_half_turn=-1.0)

@@ -5,6 +5,7 @@ import warnings
 import pytest
 import torch
 
+from dpcn.models import half_turn
 from dpcn.training.module import DPCNModule
 
 from .conftest import cv2_warp, photo
@@ -98,6 +99,34 @@ def test_alignment_term_trains_both_phase1_extractors():
     for net in (only.model.rs_template, only.model.rs_source):
         assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in net.parameters())
     assert all(p.grad is None or p.grad.abs().sum() == 0 for p in only.model.t_source.parameters())
+
+
+def test_half_turn_term_trains_phase2_on_the_turned_source():
+    torch.manual_seed(0)
+    only = DPCNModule(net=NET, loss=dict(l1_weight=0.0, kl_weight=0.0, kl_half_turn=1.0))
+    seen: list[torch.Tensor] = []
+    only.model.t_source.register_forward_hook(lambda module, args, out: seen.append(args[0]))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # self.log() without a trainer
+        loss = only._training_loss(*batch())
+    loss.backward()
+    assert torch.isfinite(loss) and float(loss) > 0
+    # One source pass holding the upright and the half-turned un-warps of the phase-2 pairs.
+    (inputs,) = seen
+    upright, turned = inputs.chunk(2)
+    torch.testing.assert_close(turned, half_turn(upright))
+    # Only the new term: gradients reach phase 2's extractors and its temperature, not phase 1.
+    for net in (only.model.t_template, only.model.t_source):
+        assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in net.parameters())
+    assert all(p.grad is None or p.grad.abs().sum() == 0 for p in only.model.rs_template.parameters())
+    # Off (the default): one source pass, upright only.
+    seen.clear()
+    off = DPCNModule(net=NET)
+    off.model.t_source.register_forward_hook(lambda module, args, out: seen.append(args[0]))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        off._training_loss(*batch())
+    assert len(seen) == 1 and seen[0].shape == upright.shape
 
 
 def test_gradcheck_alignment_surface():

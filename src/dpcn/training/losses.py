@@ -12,6 +12,7 @@ from dataclasses import dataclass
 
 import torch
 from torch import Tensor, nn
+from torch.nn import functional as F
 
 from .._validate import check_number
 from ..ops.soft_argmax import soft_argmax2d
@@ -19,6 +20,7 @@ from ..ops.soft_argmax import soft_argmax2d
 __all__ = [
     "gaussian_target",
     "one_peak_kl",
+    "half_turn_nll",
     "expectation_l1",
     "DPCNLoss",
     "rotation_scale_target",
@@ -49,6 +51,21 @@ def one_peak_kl(
     log_p = torch.log_softmax((surface / temperature).flatten(1), dim=1)
     t = target.flatten(1)
     return (t * (torch.log(t.clamp_min(1e-30)) - log_p)).sum(dim=1)
+
+
+def half_turn_nll(upright: Tensor, turned: Tensor, temperature: Tensor | float) -> Tensor:
+    """``-log P(upright)`` per pair, ``(B,)``, under one softmax over both phase-2 surfaces.
+
+    ``upright`` and ``turned`` are ``(B, H, W)`` correlation surfaces of the same template with
+    the source un-warped by the right angle and by that angle plus half a turn. The one-peak KL
+    over both surfaces together, with no target mass on ``turned``, is the one-peak KL of
+    ``upright`` plus this term, ``log(1 + Z_turned / Z_upright)`` (``Z``: the sums of
+    ``exp(surface / temperature)``). It trains the half-turn check that inference makes by
+    comparing the two surfaces' peaks.
+    """
+    upright = torch.logsumexp((upright / temperature).flatten(1), dim=1)
+    turned = torch.logsumexp((turned / temperature).flatten(1), dim=1)
+    return F.softplus(turned - upright)
 
 
 def expectation_l1(
@@ -103,6 +120,11 @@ class DPCNLoss(nn.Module):
             shift. The paper's phase-1 loss reaches the features only through their
             magnitude spectra, which discard where structures are; this term asks the two
             extractors directly for maps that coincide where the images share geometry.
+        kl_half_turn: weight of the one-peak KL of phase 2 taken over the upright and the
+            half-turned source's surfaces together (0: off, the paper's loss; see
+            :func:`half_turn_nll`, the extra over ``kl_translation``). Phase 1 knows the
+            angle modulo half a turn and inference settles it by phase 2's stronger peak,
+            which the paper's losses, on the upright surface only, never train.
     """
 
     def __init__(
@@ -116,6 +138,7 @@ class DPCNLoss(nn.Module):
         kl_rotation_scale: float | None = None,
         kl_translation: float | None = None,
         kl_align: float = 0.0,
+        kl_half_turn: float = 0.0,
     ) -> None:
         super().__init__()
         overrides = dict(
@@ -130,6 +153,7 @@ class DPCNLoss(nn.Module):
             for key, value in overrides.items()
         }
         self.weights["kl_align"] = kl_align
+        self.weights["kl_half_turn"] = kl_half_turn
         for key, value in self.weights.items():
             check_number(f"loss.{key}", value, low=0.0)
         check_number("loss.sigma", sigma, low=0.0, low_open=True)
@@ -147,10 +171,13 @@ class DPCNLoss(nn.Module):
         temperatures: Tensor,
         align_surface: Tensor | None = None,
         align_centre: Tensor | None = None,
+        turned_surface: Tensor | None = None,
     ) -> LossTerms:
         """Surfaces ``(B, H, W)`` with their true peaks ``(B, 2)`` (row, col); ``temperatures``
-        ``(2,)`` (phase 1, phase 2; the alignment term uses phase 2's). The alignment surface
-        is needed when ``kl_align > 0``."""
+        ``(2,)`` (phase 1, phase 2; the alignment and half-turn terms use phase 2's). The
+        alignment surface is needed when ``kl_align > 0``, and ``turned_surface`` (phase 2's
+        surface for the source turned by half a turn, like ``t_surface``) when
+        ``kl_half_turn > 0``."""
         t_rs, t_tr = temperatures[0], temperatures[1]
         terms: dict[str, Tensor] = {}
         if self.weights["l1_rotation"] or self.weights["l1_scale"]:
@@ -167,6 +194,10 @@ class DPCNLoss(nn.Module):
             if align_surface is None or align_centre is None:
                 raise ValueError("loss.kl_align > 0 needs the phase-1 alignment surface and its true peak")
             terms["kl_align"] = one_peak_kl(align_surface, align_centre, t_tr, self.sigma, (True, True)).mean()
+        if self.weights["kl_half_turn"]:
+            if turned_surface is None:
+                raise ValueError("loss.kl_half_turn > 0 needs phase 2's surface for the half-turned source")
+            terms["kl_half_turn"] = half_turn_nll(t_surface, turned_surface, t_tr).mean()
         total = sum(self.weights[k] * v for k, v in terms.items() if self.weights[k])
         if not isinstance(total, Tensor) or not math.isfinite(float(total.detach())):
             raise FloatingPointError(f"non-finite training loss: { {k: float(v) for k, v in terms.items()} }")

@@ -191,12 +191,14 @@ class DPCNModule(_EvaluationMixin, L.LightningModule):
         n = max(1, math.ceil(self.hparams.translation_fraction * template.shape[0]))  # phase-2 pairs
         unwarp_angle, unwarp_scale, tx, ty = unwarp_angle[:n], unwarp_scale[:n], tx[:n], ty[:n]
         unwarped = unwarp_rotation_scale(source[:n], unwarp_angle, unwarp_scale)
-        tr, _, _ = self.model.translation(template[:n], unwarped, unwarp_angle, unwarp_scale, resolve_180=False)
+        half_turn_too = bool(self.loss.weights["kl_half_turn"])
+        turns, _, _ = self.model.translation_turns(template[:n], unwarped, unwarp_angle, unwarp_scale, half_turn_too)
+        tr, turned = turns[0], turns[1].surface if half_turn_too else None
 
         m = self.model
         rs_centre = rotation_scale_target(angle, scale, m.n_angles, m.n_radii, m.radius_step)
         t_centre = translation_target(tx, ty, unwarp_angle.detach(), unwarp_scale.detach(), template.shape[-2:])
-        loss = self.loss(rs.surface, rs_centre, tr.surface, t_centre, m.train_temperature, *align)
+        loss = self.loss(rs.surface, rs_centre, tr.surface, t_centre, m.train_temperature, *align, turned)
         batch_size = template.shape[0]
         self.log("train/loss", loss.total, prog_bar=True, batch_size=batch_size)
         for name, value in loss.terms.items():
