@@ -60,6 +60,38 @@ def test_unet_skip_convolution_equals_convolving_the_concatenation():
     assert gradcheck(lambda x, y: _conv_concatenated(conv, x, y), (a, b))
 
 
+@pytest.mark.parametrize("shape", [(2, 3, 5, 7), (1, 1, 1, 1), (1, 4, 8, 8)])
+@pytest.mark.parametrize("layout", [torch.contiguous_format, torch.channels_last])
+def test_upsample2x_bilinear_is_torchs_bilinear_interpolation(shape, layout):
+    from torch.nn import functional as F
+
+    from dpcn.models.unet import upsample2x_bilinear
+
+    torch.manual_seed(0)
+    x = torch.randn(*shape, dtype=torch.float64).contiguous(memory_format=layout).requires_grad_()
+    reference = F.interpolate(x, scale_factor=2, mode="bilinear", align_corners=False)
+    out = upsample2x_bilinear(x)
+    torch.testing.assert_close(out, reference)
+    grad = torch.randn_like(out)
+    torch.testing.assert_close(torch.autograd.grad(out, x, grad)[0], torch.autograd.grad(reference, x, grad)[0])
+    assert gradcheck(upsample2x_bilinear, (x,))
+
+
+def test_unet_layout_follows_the_device():
+    # channels-last on CPUs (oneDNN), channels-first elsewhere (CUDA's GroupNorm and bilinear
+    # kernels); the meta device runs the non-CPU path (shapes only) without a GPU
+    net = UNet(1, 2, base_channels=4, depth=2)
+    conv_weights = [m.weight for m in net.modules() if isinstance(m, torch.nn.Conv2d) and m.weight.shape[-1] == 3]
+    assert all(w.is_contiguous(memory_format=torch.channels_last) for w in conv_weights)
+    assert UNet.layout(torch.device("cuda")) == torch.contiguous_format
+    meta = net.to("meta")
+    assert all(
+        m.weight.is_contiguous() for m in meta.modules() if isinstance(m, torch.nn.Conv2d) and m.weight.shape[-1] == 3
+    )
+    assert meta(torch.empty(3, 1, 16, 20, device="meta")).shape == (3, 2, 16, 20)
+    assert meta(torch.empty(1, 1, 15, 9, device="meta")).shape == (1, 2, 15, 9)  # odd: F.interpolate
+
+
 def test_unet_rejects_bad_sizes():
     with pytest.raises(ValueError, match="U-Net base_channels must be an integer >= 1, got 0"):
         UNet(1, 1, base_channels=0)

@@ -10,7 +10,7 @@ from torch.nn import functional as F
 
 from .._validate import check_ints
 
-__all__ = ["UNet"]
+__all__ = ["UNet", "upsample2x_bilinear"]
 
 
 class _GroupNorm(nn.GroupNorm):
@@ -47,6 +47,23 @@ def _conv_concatenated(conv: nn.Conv2d, a: Tensor, b: Tensor) -> Tensor:
     split = a.shape[1]
     first = F.conv2d(a, conv.weight[:, :split], None, conv.stride, conv.padding)
     return first + F.conv2d(b, conv.weight[:, split:], conv.bias, conv.stride, conv.padding)
+
+
+def upsample2x_bilinear(x: Tensor) -> Tensor:
+    """``F.interpolate(x, scale_factor=2, mode="bilinear", align_corners=False)`` of a
+    ``(B, C, H, W)`` tensor, from shifted copies: along each axis output ``2i`` is
+    ``3/4 x[i] + 1/4 x[i-1]`` and ``2i+1`` is ``3/4 x[i] + 1/4 x[i+1]``, edges clamped.
+
+    Same values (to rounding) and gradients; on CUDA PyTorch's channels-first bilinear kernel
+    loops over batch and channels in each thread, which made it 42 % of a batched `paper`
+    forward pass on an H200, while these are a few bandwidth-bound element-wise passes.
+    """
+    for dim, pad in ((-1, (1, 1, 0, 0)), (-2, (0, 0, 1, 1))):
+        padded = F.pad(x, pad, mode="replicate")
+        n = x.shape[dim]
+        before, after = padded.narrow(dim, 0, n), padded.narrow(dim, 2, n)
+        x = torch.stack([torch.lerp(x, before, 0.25), torch.lerp(x, after, 0.25)], dim=dim).flatten(dim - 1, dim)
+    return x
 
 
 def _block(in_ch: int, out_ch: int, norm: str) -> nn.Sequential:
@@ -116,12 +133,29 @@ class UNet(nn.Module):
             nn.init.constant_(self.skip.weight, 1.0 / in_channels)
             nn.init.zeros_(self.skip.bias)
         self.depth = depth
-        # Channels-last: with a few channels at full resolution, oneDNN's convolutions (and
-        # above all their backward pass) run 3-5x faster in this layout on CPUs.
-        self.to(memory_format=torch.channels_last)
+        self._set_layout()
+
+    @staticmethod
+    def layout(device: torch.device) -> torch.memory_format:
+        """Channels-last on CPUs: with a few channels at full resolution, oneDNN's convolutions
+        (above all their backward pass) run 3-5x faster in it. Channels-first elsewhere: CUDA's
+        GroupNorm and bilinear kernels work channels-first, so channels-last there costs a
+        layout copy per layer."""
+        return torch.channels_last if device.type == "cpu" else torch.contiguous_format
+
+    def _set_layout(self) -> None:
+        layout = self.layout(self.head.weight.device)
+        for module in self.modules():
+            if isinstance(module, nn.Conv2d) and not module.weight.is_contiguous(memory_format=layout):
+                module.weight.data = module.weight.data.contiguous(memory_format=layout)
+
+    def _apply(self, fn, recurse: bool = True):  # .to(device), .cuda(), ...: keep the device's layout
+        super()._apply(fn, recurse)
+        self._set_layout()
+        return self
 
     def forward(self, x: Tensor) -> Tensor:
-        x = x.contiguous(memory_format=torch.channels_last)
+        x = x.contiguous(memory_format=self.layout(x.device))
         skips = [self.stem(x)]
         for block in self.down:
             skips.append(block(F.max_pool2d(skips[-1], 2, ceil_mode=True)))
@@ -129,7 +163,11 @@ class UNet(nn.Module):
         corners = False if self.upsample == "bilinear" else None
         for block in self.up:
             skip = skips.pop()
-            y = F.interpolate(y, size=skip.shape[-2:], mode=self.upsample, align_corners=corners)
+            size = skip.shape[-2:]
+            if self.upsample == "bilinear" and x.device.type != "cpu" and size == (2 * y.shape[-2], 2 * y.shape[-1]):
+                y = upsample2x_bilinear(y)  # on CPUs F.interpolate is the faster of the two
+            else:
+                y = F.interpolate(y, size=size, mode=self.upsample, align_corners=corners)
             y = block[1:](_conv_concatenated(block[0], y, skip))
         out = self.head(y) if self.skip is None else self.head(y) + self.skip(x)
         return F.softplus(out).contiguous()
