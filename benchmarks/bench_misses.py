@@ -1,0 +1,137 @@
+"""Where a matcher's rotation misses lie; phase 2 of one checkpoint on phase 1 of another.
+
+Phase 1 finds the angle modulo half a turn and phase 2's half-turn check settles which of the
+two turns it is (the stronger translation peak). This evaluates a checkpoint (or, without
+``--checkpoint``, the classical estimator) on the fixed validation pairs (held-out regions)
+and test pairs (held-out scene) of a data config, and splits the pairs that miss the 1°
+rotation threshold into half-turns (error at least 175°: the check chose the wrong turn),
+near misses (1–5°) and wrong peaks (5–175°: phase 1 failed), and counts the pairs found
+within 1° whose translation still misses (x or y beyond the data's threshold), beside the
+paper's accuracies (%).
+
+``--phase2-from CKPT2`` replaces the checkpoint's phase-2 U-Nets (``t_template``,
+``t_source``) by CKPT2's before evaluating: two phase-2 trainings compared on the same
+phase 1, which run-to-run spread of whole trainings cannot show.
+
+    python benchmarks/bench_misses.py --data s2d --checkpoint CKPT [--phase2-from CKPT2] \
+        [--stages validate,test] [-- rotation_views=4 ...]
+
+Everything after ``--`` is a Hydra override of the evaluation config (as for
+``python -m dpcn test``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import torch
+from hydra import compose, initialize_config_dir
+from hydra.utils import instantiate
+
+from dpcn.metrics import pose_errors, summarize, thresholds_for
+from dpcn.training.module import CheckpointError, load_matcher
+
+CONF = Path(__file__).resolve().parents[1] / "conf"
+STAGES = {"validate": ("val", "held-out regions"), "test": ("test", "held-out scene")}
+HALF_TURN = 175.0  # degrees: an error this large is the other turn, not a wrong peak
+NEAR = 5.0
+PHASE2 = ("t_template", "t_source")
+
+
+def miss_counts(errors: torch.Tensor, translation_threshold: float) -> dict[str, int]:
+    """Counts over ``(N, 4)`` absolute errors ``(x, y, angle, scale)`` (pixels, degrees)."""
+    rot = errors[:, 2]
+    found = rot <= 1.0
+    xy_miss = (errors[:, 0] > translation_threshold) | (errors[:, 1] > translation_threshold)
+    return {
+        "n": int(errors.shape[0]),
+        "rot>1": int((~found).sum()),
+        "half-turn": int((rot >= HALF_TURN).sum()),
+        "1-5": int(((rot > 1.0) & (rot <= NEAR)).sum()),
+        "5-175": int(((rot > NEAR) & (rot < HALF_TURN)).sum()),
+        "xy miss|rot ok": int((found & xy_miss).sum()),
+    }
+
+
+def _swap_phase2(matcher, donor_path: str, target_path: str) -> None:
+    donor = load_matcher(donor_path)
+    for name in PHASE2:
+        try:
+            getattr(matcher.model, name).load_state_dict(getattr(donor.model, name).state_dict())
+        except RuntimeError as error:
+            first = str(error).strip().splitlines()[0]
+            raise SystemExit(f"bench_misses: phase 2 of {donor_path} does not fit {target_path}: {first}") from None
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--data", default="s2d", help="data config (l2d, l2sat, s2d, s2sat, sim_...)")
+    parser.add_argument("--checkpoint", help="DPCN checkpoint (default: the classical estimator)")
+    parser.add_argument("--phase2-from", help="take the phase-2 U-Nets from this checkpoint")
+    parser.add_argument("--stages", default="validate,test")
+    parser.add_argument("overrides", nargs="*", help="Hydra overrides (after --)")
+    args = parser.parse_args(argv)
+    stages = [s.strip() for s in args.stages.split(",") if s.strip()]
+    if not stages or any(s not in STAGES for s in stages):
+        parser.error(f"--stages takes validate and/or test, got {args.stages!r}")
+    if args.phase2_from and not args.checkpoint:
+        parser.error("--phase2-from needs --checkpoint (the classical estimator has no phase-2 U-Nets)")
+
+    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+        cfg = compose("config", overrides=[f"data={args.data}", *args.overrides])
+    if args.checkpoint:
+        try:
+            matcher = load_matcher(
+                args.checkpoint,
+                rotation_hypotheses=cfg.rotation_hypotheses,
+                spectrum_window_grid=cfg.spectrum_window_grid,
+                rotation_views=cfg.rotation_views,
+            )
+            name = f"DPCN ({Path(args.checkpoint).name})"
+            if args.phase2_from:
+                _swap_phase2(matcher, args.phase2_from, args.checkpoint)
+                name += f", phase 2 of {Path(args.phase2_from).name}"
+        except CheckpointError as e:
+            raise SystemExit(f"bench_misses: {e}") from None
+    else:
+        with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+            classical = compose("config", overrides=[f"data={args.data}", "model=classical", *args.overrides])
+        matcher = instantiate(classical.model, _convert_="all")
+        name = "classical"
+    datamodule = instantiate(cfg.data)
+    threshold = float(cfg.data.translation_threshold)
+    print(f"{name} on {args.data}: rotation misses (error > 1 deg) by size; translation misses (> {threshold:g} px)")
+    columns = ["n", "rot>1", "half-turn", "1-5", "5-175", "xy miss|rot ok"]
+    t = f"{threshold:g}"
+    accuracies = [
+        (f"x@{t}", f"acc_x@{t}"),
+        (f"y@{t}", f"acc_y@{t}"),
+        ("rot@1", "acc_rot@1"),
+        ("s@0.2", "acc_scale@0.2"),
+    ]
+    header = " ".join(f"{c:>14}" for c in columns) + " " + " ".join(f"{c:>7}" for c, _ in accuracies)
+    print(f"{'pairs':<18} {header}")
+    for stage in stages:
+        split, label = STAGES[stage]
+        datamodule.setup(stage)
+        loader = datamodule.val_dataloader() if split == "val" else datamodule.test_dataloader()
+        errors = []
+        with torch.no_grad():
+            for batch in loader:
+                pose = matcher.match(batch["template"], batch["source"])
+                errors.append(pose_errors(pose.as_tensor().cpu(), batch["pose"]))
+        errors = torch.cat(errors)
+        counts, metrics = miss_counts(errors, threshold), summarize(errors, thresholds_for(threshold))
+        cells = (
+            " ".join(f"{counts[c]:>14d}" for c in columns)
+            + " "
+            + " ".join(f"{metrics[k]:>7.1f}" for _, k in accuracies)
+        )
+        print(f"{label:<18} {cells}")
+    sys.stdout.flush()
+
+
+if __name__ == "__main__":
+    main()

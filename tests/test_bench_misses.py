@@ -1,0 +1,77 @@
+"""The miss-analysis benchmark: counts, real configs and scenes on disk, real checkpoints."""
+
+import pytest
+import torch
+from hydra.utils import instantiate
+
+from dpcn.data.scene import make_dataset
+
+from .conftest import compose_config, load_benchmark
+
+
+@pytest.fixture(scope="module")
+def misses():
+    return load_benchmark("bench_misses")
+
+
+def _checkpoint(path, seed: int, *overrides: str):
+    """A file as `dpcn fit` writes it, as far as `load_matcher` reads one (weights + hparams)."""
+    torch.manual_seed(seed)
+    module = instantiate(compose_config("data=s2d", "image_size=96", *overrides).model, _convert_="all")
+    torch.save({"state_dict": module.state_dict(), "hyper_parameters": dict(module.hparams)}, path)
+    return path
+
+
+def test_counts_split_the_rotation_misses_by_size(misses):
+    # (x, y, angle, scale) errors: ok, half-turn, near, wrong peak, translation miss with rot ok
+    errors = torch.tensor(
+        [
+            [0.5, 0.5, 0.2, 0.0],
+            [0.5, 0.5, 179.0, 0.0],
+            [0.5, 0.5, 3.0, 0.0],
+            [0.5, 0.5, 90.0, 0.0],
+            [12.0, 0.5, 0.9, 0.0],
+        ]
+    )
+    counts = misses.miss_counts(errors, translation_threshold=10.0)
+    assert counts == {"n": 5, "rot>1": 3, "half-turn": 1, "1-5": 1, "5-175": 1, "xy miss|rot ok": 1}
+
+
+def test_classical_rows_add_up(misses, tmp_path, capsys):
+    root = make_dataset(tmp_path / "maps", n_scenes=3, seed=3, size=(720, 720), gap=0)
+    overrides = [f"data.root={root}", "image_size=96", "data.dataset.translation=20", "data.test_length=24"]
+    misses.main(["--data", "s2d", "--stages", "test", "--", *overrides])
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0].startswith("classical on s2d")
+    cells = lines[2][18:].split()
+    n, rot, half, near, wrong, xy = (int(v) for v in cells[:6])
+    assert all(0.0 <= float(v) <= 100.0 for v in cells[6:]) and len(cells) == 10
+    assert float(cells[8]) == pytest.approx(100.0 * (n - rot) / n, abs=0.05)  # rot@1
+    assert lines[2].startswith("held-out scene")
+    assert n == 24 and rot == half + near + wrong and 0 <= xy <= n - rot
+
+
+def test_phase2_swap_takes_only_the_translation_unets(misses, tmp_path):
+    target = _checkpoint(tmp_path / "a.ckpt", 0)
+    donor = _checkpoint(tmp_path / "b.ckpt", 1)
+    matcher = misses.load_matcher(target)
+    before = {k: v.clone() for k, v in matcher.model.state_dict().items()}
+    misses._swap_phase2(matcher, str(donor), str(target))
+    after, donated = matcher.model.state_dict(), misses.load_matcher(donor).model.state_dict()
+    for key, value in after.items():
+        expected = donated[key] if key.startswith(("t_template.", "t_source.")) else before[key]
+        assert torch.equal(value, expected), key
+    assert any(not torch.equal(after[k], before[k]) for k in after if k.startswith("t_source."))  # seeds differ
+
+
+def test_bad_arguments_are_refused(misses, tmp_path):
+    with pytest.raises(SystemExit):
+        misses.main(["--stages", "fit"])
+    with pytest.raises(SystemExit):
+        misses.main(["--phase2-from", "x.ckpt"])  # no --checkpoint
+    with pytest.raises(SystemExit, match="checkpoint not found: /nonexistent.ckpt"):
+        misses.main(["--checkpoint", "/nonexistent.ckpt"])
+    target = _checkpoint(tmp_path / "a.ckpt", 0)
+    wider = _checkpoint(tmp_path / "wide.ckpt", 0, "model.net.base_channels=8")
+    with pytest.raises(SystemExit, match="phase 2 of .*wide.ckpt does not fit"):
+        misses.main(["--checkpoint", str(target), "--phase2-from", str(wider)])
