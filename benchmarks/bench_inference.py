@@ -7,6 +7,7 @@ the cost does not depend on them.
 
     python benchmarks/bench_inference.py [--device cpu|cuda] [--threads 2] [--batch 32] [--ckpt last.ckpt]
         [--window-grids 1,3] [--hypotheses 1,3] [--views 1,2,8]   # also time other stage-1 inference settings
+        [--unet-dtype bfloat16]                                   # DPCN.unet_dtype
 """
 
 from __future__ import annotations
@@ -82,6 +83,7 @@ def main() -> None:
     parser.add_argument("--window-grids", default=None, help="comma-separated spectrum_window_grid values to time")
     parser.add_argument("--views", default=None, help="comma-separated rotation_views values to time")
     parser.add_argument("--bf16", action="store_true", help="autocast the U-Nets to bfloat16 (GPU)")
+    parser.add_argument("--unet-dtype", default=None, help="DPCN.unet_dtype: float32 or bfloat16 U-Net weights")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     device = args.device
@@ -107,6 +109,10 @@ def main() -> None:
                 for value in (int(v) for v in values.split(",")):
                     models[f"{label}, {short}={value}"] = variant = copy.deepcopy(model)
                     setattr(variant, option, value)
+    if args.unet_dtype:
+        for label in list(models):
+            models[label].unet_dtype = args.unet_dtype
+            models[f"{label}, {args.unet_dtype} U-Nets"] = models.pop(label)
     models["classical (no U-Nets)"] = PhaseCorrelationEstimator()
 
     generator = torch.Generator().manual_seed(0)

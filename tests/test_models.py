@@ -92,6 +92,25 @@ def test_unet_layout_follows_the_device():
     assert meta(torch.empty(1, 1, 15, 9, device="meta")).shape == (1, 2, 15, 9)  # odd: F.interpolate
 
 
+def test_bfloat16_unets_give_float32_poses_close_to_float32_ones():
+    torch.manual_seed(0)
+    image = photo("camera", (64, 64))
+    source = cv2_warp(image, 3.0, -2.0, 30.0, 1.1)
+    pair = [torch.from_numpy(a)[None, None].repeat(2, 1, 1, 1) for a in (image, source)]
+    model = DPCN(image_size=(64, 64)).eval()
+    reference = model.match(*pair).as_tensor()
+    assert model.unet_dtype == "float32"
+    model.unet_dtype = "bfloat16"
+    assert {p.dtype for n, p in model.named_parameters() if n != "log_train_temperature"} == {torch.bfloat16}
+    out = model(*pair)
+    assert out.features["t_source"].dtype == torch.float32 and out.pose.tx.dtype == torch.float32
+    pose = model.match(*pair).as_tensor()
+    assert (pose[:, :2] - reference[:, :2]).abs().max() < 0.5  # px
+    assert max(angle_error(a, b) for a, b in zip(pose[:, 2], reference[:, 2], strict=True)) < 0.5  # degrees
+    with pytest.raises(ValueError, match="unet_dtype must be one of float32, bfloat16, got 'float16'"):
+        model.unet_dtype = "float16"
+
+
 def test_unet_rejects_bad_sizes():
     with pytest.raises(ValueError, match="U-Net base_channels must be an integer >= 1, got 0"):
         UNet(1, 1, base_channels=0)

@@ -65,12 +65,13 @@ def _resolve_device(name: str) -> str:
     return name
 
 
-def _inference_settings(cfg: DictConfig) -> dict[str, int | None]:
+def _inference_settings(cfg: DictConfig) -> dict[str, int | str | None]:
     """The top-level overrides of a checkpoint's inference settings (``None``: keep)."""
     return {
         "rotation_hypotheses": cfg.rotation_hypotheses,
         "spectrum_window_grid": cfg.spectrum_window_grid,
         "rotation_views": cfg.rotation_views,
+        "unet_dtype": cfg.get("unet_dtype"),
     }
 
 

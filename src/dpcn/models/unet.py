@@ -155,7 +155,8 @@ class UNet(nn.Module):
         return self
 
     def forward(self, x: Tensor) -> Tensor:
-        x = x.contiguous(memory_format=self.layout(x.device))
+        dtype = x.dtype  # features come back in the input's dtype whatever the weights' (bfloat16)
+        x = x.to(self.head.weight.dtype).contiguous(memory_format=self.layout(x.device))
         skips = [self.stem(x)]
         for block in self.down:
             skips.append(block(F.max_pool2d(skips[-1], 2, ceil_mode=True)))
@@ -170,4 +171,4 @@ class UNet(nn.Module):
                 y = F.interpolate(y, size=size, mode=self.upsample, align_corners=corners)
             y = block[1:](_conv_concatenated(block[0], y, skip))
         out = self.head(y) if self.skip is None else self.head(y) + self.skip(x)
-        return F.softplus(out).contiguous()
+        return F.softplus(out).to(dtype).contiguous()

@@ -309,12 +309,13 @@ def load_matcher(
     rotation_hypotheses: int | None = None,
     spectrum_window_grid: int | None = None,
     rotation_views: int | None = None,
+    unet_dtype: str | None = None,
 ) -> DPCNModule:
     """Load a DPCN checkpoint ready for ``.match(template, source) -> Pose`` (eval mode).
 
-    ``rotation_hypotheses``, ``spectrum_window_grid`` and ``rotation_views`` replace the
-    checkpoint's inference settings of those names (see :class:`~dpcn.models.DPCN`); ``None``
-    keeps them.
+    ``rotation_hypotheses``, ``spectrum_window_grid``, ``rotation_views`` and ``unet_dtype``
+    replace the checkpoint's inference settings of those names (see :class:`~dpcn.models.DPCN`);
+    ``None`` keeps them.
     Raises :class:`CheckpointError` naming the problem for a missing, corrupt or foreign file.
     """
     path = Path(ckpt_path)
@@ -339,4 +340,6 @@ def load_matcher(
         module.model.spectrum_window_grid = spectrum_window_grid
     if rotation_views is not None:
         module.model.rotation_views = rotation_views
+    if unet_dtype is not None:
+        module.model.unet_dtype = unet_dtype
     return module.to(map_location).eval()
