@@ -46,7 +46,7 @@ from ..ops.logpolar import log_polar_grid, log_radius_step
 from ..pose import Pose, wrap_angle
 from .unet import UNet
 
-__all__ = ["DPCN", "DPCNOutput", "ROTATION_SCALE_POOLING", "half_turn"]
+__all__ = ["DPCN", "DPCNOutput", "ROTATION_SCALE_POOLING", "UNET_DTYPES", "half_turn"]
 
 ROTATION_SCALE_POOLING = ("average", "space_to_depth")
 UNET_DTYPES = ("float32", "bfloat16")  # inference settings of DPCN.unet_dtype
