@@ -33,6 +33,27 @@ CONF = Path(__file__).resolve().parents[1] / "conf"
 STAGES = {"validate": ("val", "held-out regions"), "test": ("test", "held-out scene")}
 
 
+def evaluation_setup(data: str, checkpoint: str | None, overrides: list[str], prog: str):
+    """``(config, matcher, name)`` for evaluating a checkpoint (its inference settings replaced
+    by the top-level overrides) or, without one, the classical estimator, on a data config.
+    A missing or unreadable checkpoint exits with one line prefixed by ``prog``."""
+    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+        cfg = compose("config", overrides=[f"data={data}", *overrides])
+        if not checkpoint:
+            classical = compose("config", overrides=[f"data={data}", "model=classical", *overrides])
+            return cfg, instantiate(classical.model, _convert_="all"), "classical"
+    try:
+        matcher = load_matcher(
+            checkpoint,
+            rotation_hypotheses=cfg.rotation_hypotheses,
+            spectrum_window_grid=cfg.spectrum_window_grid,
+            rotation_views=cfg.rotation_views,
+        )
+    except CheckpointError as e:
+        raise SystemExit(f"{prog}: {e}") from None
+    return cfg, matcher, f"DPCN ({Path(checkpoint).name})"
+
+
 def _errors_and_coverage(matcher, loader) -> tuple[torch.Tensor, torch.Tensor]:
     errors, coverage = [], []
     with torch.no_grad():
@@ -61,24 +82,7 @@ def main(argv: list[str] | None = None) -> None:
     if any(not 0.0 <= e <= 1.0 + 1e-9 for e in edges):
         parser.error(f"--bins are fractions in [0, 1], got {args.bins}")
 
-    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
-        cfg = compose("config", overrides=[f"data={args.data}", *args.overrides])
-    if args.checkpoint:
-        try:
-            matcher = load_matcher(
-                args.checkpoint,
-                rotation_hypotheses=cfg.rotation_hypotheses,
-                spectrum_window_grid=cfg.spectrum_window_grid,
-                rotation_views=cfg.rotation_views,
-            )
-        except CheckpointError as e:
-            raise SystemExit(f"bench_coverage: {e}") from None
-        name = f"DPCN ({Path(args.checkpoint).name})"
-    else:
-        with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
-            classical = compose("config", overrides=[f"data={args.data}", "model=classical", *args.overrides])
-        matcher = instantiate(classical.model, _convert_="all")
-        name = "classical"
+    cfg, matcher, name = evaluation_setup(args.data, args.checkpoint, args.overrides, "bench_coverage")
     datamodule = instantiate(cfg.data)
     limit = float(cfg.data.translation_threshold)
     thresholds = thresholds_for(limit)

@@ -27,14 +27,14 @@ import sys
 from pathlib import Path
 
 import torch
-from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 
 from dpcn.metrics import pose_errors, summarize, thresholds_for
 from dpcn.training.module import CheckpointError, load_matcher
 
-CONF = Path(__file__).resolve().parents[1] / "conf"
-STAGES = {"validate": ("val", "held-out regions"), "test": ("test", "held-out scene")}
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_coverage import STAGES, evaluation_setup  # noqa: E402  (the same evaluation set-up)
+
 HALF_TURN = 175.0  # degrees: an error this large is the other turn, not a wrong peak
 NEAR = 5.0
 PHASE2 = ("t_template", "t_source")
@@ -79,27 +79,13 @@ def main(argv: list[str] | None = None) -> None:
     if args.phase2_from and not args.checkpoint:
         parser.error("--phase2-from needs --checkpoint (the classical estimator has no phase-2 U-Nets)")
 
-    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
-        cfg = compose("config", overrides=[f"data={args.data}", *args.overrides])
-    if args.checkpoint:
+    cfg, matcher, name = evaluation_setup(args.data, args.checkpoint, args.overrides, "bench_misses")
+    if args.phase2_from:
         try:
-            matcher = load_matcher(
-                args.checkpoint,
-                rotation_hypotheses=cfg.rotation_hypotheses,
-                spectrum_window_grid=cfg.spectrum_window_grid,
-                rotation_views=cfg.rotation_views,
-            )
-            name = f"DPCN ({Path(args.checkpoint).name})"
-            if args.phase2_from:
-                _swap_phase2(matcher, args.phase2_from, args.checkpoint)
-                name += f", phase 2 of {Path(args.phase2_from).name}"
+            _swap_phase2(matcher, args.phase2_from, args.checkpoint)
         except CheckpointError as e:
             raise SystemExit(f"bench_misses: {e}") from None
-    else:
-        with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
-            classical = compose("config", overrides=[f"data={args.data}", "model=classical", *args.overrides])
-        matcher = instantiate(classical.model, _convert_="all")
-        name = "classical"
+        name += f", phase 2 of {Path(args.phase2_from).name}"
     datamodule = instantiate(cfg.data)
     threshold = float(cfg.data.translation_threshold)
     print(f"{name} on {args.data}: rotation misses (error > 1 deg) by size; translation misses (> {threshold:g} px)")
