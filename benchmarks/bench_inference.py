@@ -23,6 +23,7 @@ from omegaconf import OmegaConf
 
 from dpcn import PhaseCorrelationEstimator
 from dpcn.models import DPCN
+from dpcn.models.dpcn import UNET_DTYPES
 
 CONF = Path(__file__).resolve().parents[1] / "conf" / "model"
 TIMED_SETTINGS = (  # the preset's architecture and its cost-bearing inference settings
@@ -83,7 +84,7 @@ def main() -> None:
     parser.add_argument("--window-grids", default=None, help="comma-separated spectrum_window_grid values to time")
     parser.add_argument("--views", default=None, help="comma-separated rotation_views values to time")
     parser.add_argument("--bf16", action="store_true", help="autocast the U-Nets to bfloat16 (GPU)")
-    parser.add_argument("--unet-dtype", default=None, help="DPCN.unet_dtype: float32 or bfloat16 U-Net weights")
+    parser.add_argument("--unet-dtype", choices=UNET_DTYPES, default=None, help="DPCN.unet_dtype of the timed models")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     device = args.device
