@@ -100,6 +100,7 @@ def test_missing_root_is_a_clear_error(tmp_path):
         (["data=s2sat"], 7),
         (["data=s2d", "trainer.max_epochs=3"], 3),  # the command line wins
         (["data=l2sat", "experiment=quick"], 2),  # and so does an experiment
+        (["data=s2d", "experiment=finetune_translation"], 2),
     ],
 )
 def test_training_length_per_data_config(args, epochs):
@@ -172,3 +173,11 @@ def test_make_data_cli(tmp_path):
     bad = dpcn("make-data", f"out={tmp_path / 'bad'}", "scene_size=[100]", cwd=tmp_path, check=False)
     assert bad.returncode == 2 and "scene_size must be one positive integer or [H, W]" in bad.stderr
     assert "Traceback" not in bad.stderr and "HYDRA_FULL_ERROR" not in bad.stderr
+
+
+def test_finetune_experiment_trains_phase2_alone_with_the_half_turn_term():
+    cfg = compose_config("data=s2d", "experiment=finetune_translation", "init_from=x.ckpt")
+    assert list(cfg.model.freeze) == ["rotation_scale"] and cfg.model.translation_fraction == 1
+    assert cfg.model.loss.kl_half_turn == 1 and cfg.model.warmup_epochs == 0 and cfg.init_from == "x.ckpt"
+    assert cfg.model.net.rotation_scale_downsample == 1  # s2d's own model (tiny_full) underneath
+    assert list(compose_config().model.freeze) == []  # nothing frozen by default

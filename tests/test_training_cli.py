@@ -197,6 +197,33 @@ def test_validate_and_test_print_the_paper_table(trained, tmp_path):
     assert (tmp_path / "v" / "metrics_validate.csv").is_file()
 
 
+def test_fine_tuning_starts_from_the_weights_and_keeps_the_frozen_phase(trained, tmp_path):
+    init = trained / "checkpoints" / "last.ckpt"
+    fit(tmp_path / "ft", f"init_from={init}", "model.freeze=[rotation_scale]", "data.seeds.train=5", cwd=tmp_path)
+    before = torch.load(init, weights_only=False)
+    after = torch.load(tmp_path / "ft" / "checkpoints" / "last.ckpt", weights_only=False)
+    weights = [k for k in before["state_dict"] if k.startswith("model.") and k.endswith("weight")]
+    phase1 = [k for k in weights if k.startswith("model.rs_")]
+    phase2 = [k for k in weights if k.startswith("model.t_")]
+    # Phase 1 is the trained run's (not this run's own initialisation), unchanged by training;
+    # phase 2 started there and moved; the run itself is a fresh one (its first epoch, step 2).
+    assert phase1 and all(torch.equal(before["state_dict"][k], after["state_dict"][k]) for k in phase1)
+    assert any(not torch.equal(before["state_dict"][k], after["state_dict"][k]) for k in phase2)
+    assert after["epoch"] == 0 and after["global_step"] == 2
+    assert after["hyper_parameters"]["freeze"] == ["rotation_scale"]
+    # Resuming the fine-tuning run restores its own weights, not init_from's.
+    fit(tmp_path / "ft", f"init_from={init}", f"ckpt_path={tmp_path / 'ft/checkpoints/last.ckpt'}",
+        "model.freeze=[rotation_scale]", "data.seeds.train=5", "trainer.max_epochs=2", cwd=tmp_path)  # fmt: skip
+    resumed = torch.load(tmp_path / "ft" / "checkpoints" / "last.ckpt", weights_only=False)
+    assert resumed["epoch"] == 1 and resumed["global_step"] == 4
+    # Another architecture is refused with what differs.
+    out = dpcn("fit", *SMALL, "model.net.feature_channels=2", f"init_from={init}",
+               f"hydra.run.dir={tmp_path / 'bad'}", cwd=tmp_path, check=False)  # fmt: skip
+    assert out.returncode == 2 and "Traceback" not in out.stderr
+    assert f"init_from={init}: its network is not this model's (" in out.stderr
+    assert "head.weight is (4, 2, 1, 1) there, (2, 2, 1, 1) here" in out.stderr
+
+
 def test_predict_with_a_checkpoint(trained, tmp_path):
     import cv2
     import numpy as np
@@ -226,6 +253,10 @@ def test_predict_with_a_checkpoint(trained, tmp_path):
         (["fit", "+data.dataset.bogus=1"], "data.dataset: SimulatedPairs.__init__() got an unexpected keyword"),
         (["fit", "ema_decay=1"], "ema_decay must be a number in (0, 1) or null, got 1"),
         (["fit", "ema_decay=abc"], "ema_decay must be a number in (0, 1) or null, got 'abc'"),
+        (["fit", "init_from=missing.ckpt"], "init_from: checkpoint not found: missing.ckpt"),
+        (["fit", "init_from=corrupt.ckpt"], "corrupt or not a torch file"),
+        (["fit", "init_from=foreign.ckpt"], "not a Lightning checkpoint of a dpcn model"),
+        (["fit", "model.freeze=[rotation]"], "model.freeze takes a list of rotation_scale, translation"),
     ],
 )
 def test_bad_runs_fail_in_one_line(tmp_path, args, message):

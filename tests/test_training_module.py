@@ -1,5 +1,6 @@
 """DPCNModule's training loss without a trainer: the phase-2 share of each batch."""
 
+import re
 import warnings
 
 import pytest
@@ -162,3 +163,54 @@ def test_nearest_training_window_follows_the_inference_grid():
     assert torch.isfinite(loss("nearest", 3)) and not torch.allclose(loss("nearest", 3), loss("centred", 3))
     with pytest.raises(ValueError, match="model.train_spectrum_window must be one of centred, nearest, got 'best'"):
         DPCNModule(net=NET, train_spectrum_window="best")
+
+
+@pytest.mark.parametrize(("frozen", "trained"), [("rotation_scale", "translation"), ("translation", "rotation_scale")])
+def test_a_frozen_phase_gets_no_gradients_and_no_optimiser_slot(frozen, trained):
+    from dpcn.training.module import FREEZABLE
+
+    torch.manual_seed(0)
+    module = DPCNModule(net=NET, freeze=[frozen], loss=dict(kl_align=1.0, kl_half_turn=1.0))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # self.log() without a trainer
+        loss = module._training_loss(*batch())
+    loss.backward()
+    for name in FREEZABLE[frozen]:
+        net = getattr(module.model, name)
+        assert all(not p.requires_grad and p.grad is None for p in net.parameters())
+    for name in FREEZABLE[trained]:
+        assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in getattr(module.model, name).parameters())
+    optimised = {id(p) for group in module.configure_optimizers().param_groups for p in group["params"]}
+    frozen_params = [p for name in FREEZABLE[frozen] for p in getattr(module.model, name).parameters()]
+    assert frozen_params and not optimised & {id(p) for p in frozen_params}
+    assert optimised == {id(p) for p in module.parameters() if p.requires_grad}
+    # train() keeps the frozen U-Nets in eval mode (BatchNorm statistics stay as loaded).
+    module.train()
+    assert all(not getattr(module.model, name).training for name in FREEZABLE[frozen])
+    assert all(getattr(module.model, name).training for name in FREEZABLE[trained])
+
+
+def test_frozen_batchnorm_statistics_do_not_move():
+    torch.manual_seed(0)
+    module = DPCNModule(net=dict(NET, norm="batch"), freeze="rotation_scale").train()
+    before = {k: v.clone() for k, v in module.model.rs_template.state_dict().items()}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        module._training_loss(*batch())
+    after = module.model.rs_template.state_dict()
+    assert all(torch.equal(before[k], after[k]) for k in before)
+    # The trained phase's running statistics do move (they start at zero).
+    assert module.model.t_template.state_dict()["stem.1.running_mean"].abs().sum() > 0
+
+
+@pytest.mark.parametrize(
+    ("freeze", "message"),
+    [
+        (["rotation"], "model.freeze takes a list of rotation_scale, translation; got ['rotation']"),
+        (5, "model.freeze takes a list of rotation_scale, translation; got 5"),
+        (["rotation_scale", "translation"], "model.freeze names both phases: nothing would be trained"),
+    ],
+)
+def test_bad_freeze_is_refused(freeze, message):
+    with pytest.raises(ValueError, match=re.escape(message)):
+        DPCNModule(net=NET, freeze=freeze)

@@ -27,7 +27,8 @@ USAGE = f"""usage: python -m dpcn <command> [key=value ...] [-m] [--cfg job]
 commands: {", ".join(COMMANDS)}
   fit [data=sim_heterogeneous|sim_homogeneous|sim_dynamic|l2d|l2sat|s2d|s2sat|csv]
       [model=tiny|tiny_full|paper] [loss=default|l1|kl|paper] [trainer=auto|cpu|gpu|ddp]
-      [experiment=quick] [ckpt_path=.../last.ckpt to resume]
+      [experiment=quick|finetune_translation] [ckpt_path=.../last.ckpt to resume]
+      [init_from=model.ckpt to start from its weights] [model.freeze=[rotation_scale]]
       trains DPCN; run directory outputs/fit/<time>/ (checkpoints/, metrics.csv, .hydra/)
   validate|test ckpt_path=model.ckpt [data=...]     (or model=classical, no checkpoint)
       prints the paper's metrics table and writes metrics_<stage>.csv in the run directory
@@ -101,14 +102,15 @@ def _run_dir() -> Path:
     return Path(HydraConfig.get().runtime.output_dir)
 
 
-def _check_ckpt(path: str | None) -> Path | None:
+def _check_ckpt(path: str | None, key: str = "ckpt_path") -> Path | None:
     if not path:
         return None
     from .training.module import CheckpointError
 
     p = Path(path)
     if not p.is_file():
-        raise CheckpointError(f"checkpoint not found: {p}")
+        prefix = "" if key == "ckpt_path" else f"{key}: "
+        raise CheckpointError(f"{prefix}checkpoint not found: {p}")
     return p
 
 
@@ -201,9 +203,10 @@ def run_fit(cfg: DictConfig) -> None:
     import lightning as L
     from hydra.utils import instantiate
 
-    from .training.module import DPCNModule
+    from .training.module import DPCNModule, load_weights
 
     ckpt = _check_ckpt(cfg.ckpt_path)
+    init = _check_ckpt(cfg.get("init_from"), "init_from")
     L.seed_everything(cfg.seed, workers=True)
     run_dir = _run_dir()
     datamodule = instantiate(cfg.data)
@@ -214,6 +217,9 @@ def run_fit(cfg: DictConfig) -> None:
         from .training.module import load_matcher
 
         load_matcher(ckpt)  # a clear error now rather than a traceback from inside Lightning
+    if init is not None:  # a resumed run (ckpt_path) then restores its own weights over these
+        load_weights(module, init)
+        log.info("starting from the weights of %s", init)
     log.info("data: %s, run directory: %s", datamodule.name, run_dir)
     trainer = _trainer(cfg, run_dir, fit=True)
     trainer.fit(module, datamodule=datamodule, ckpt_path=str(ckpt) if ckpt else None)

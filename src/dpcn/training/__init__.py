@@ -2,6 +2,14 @@
 
 from .checkpointing import AtomicCheckpointIO
 from .losses import DPCNLoss
-from .module import CheckpointError, ClassicalModule, DPCNModule, load_matcher
+from .module import CheckpointError, ClassicalModule, DPCNModule, load_matcher, load_weights
 
-__all__ = ["AtomicCheckpointIO", "CheckpointError", "ClassicalModule", "DPCNLoss", "DPCNModule", "load_matcher"]
+__all__ = [
+    "AtomicCheckpointIO",
+    "CheckpointError",
+    "ClassicalModule",
+    "DPCNLoss",
+    "DPCNModule",
+    "load_matcher",
+    "load_weights",
+]

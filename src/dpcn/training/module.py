@@ -19,10 +19,12 @@ from ..ops._checks import inputs_checked
 from ..pose import Pose, wrap_angle
 from .losses import DPCNLoss, rotation_scale_target, translation_target
 
-__all__ = ["DPCNModule", "ClassicalModule", "load_matcher", "CheckpointError"]
+__all__ = ["DPCNModule", "ClassicalModule", "load_matcher", "load_weights", "CheckpointError"]
 
 
 TRAIN_SPECTRUM_WINDOWS = ("centred", "nearest")
+# Parts of the model that ``freeze`` can hold fixed: each phase's two U-Nets.
+FREEZABLE = {"rotation_scale": ("rs_template", "rs_source"), "translation": ("t_template", "t_source")}
 
 
 def _warmup_cosine(step: int, total: int, warmup: float = 0.1, floor: float = 0.04) -> float:
@@ -37,6 +39,18 @@ def _warmup_cosine(step: int, total: int, warmup: float = 0.1, floor: float = 0.
 
 class CheckpointError(ValueError):
     """A checkpoint that is missing, unreadable or not a dpcn checkpoint."""
+
+
+def _check_freeze(freeze: object) -> tuple[str, ...]:
+    """``model.freeze`` as a tuple of known part names (a clear error otherwise)."""
+    if freeze is None:
+        return ()
+    parts = (freeze,) if isinstance(freeze, str) else freeze
+    if not isinstance(parts, (list, tuple)) or any(part not in FREEZABLE for part in parts):
+        raise ValueError(f"model.freeze takes a list of {', '.join(FREEZABLE)}; got {freeze!r}")
+    if set(parts) == set(FREEZABLE):
+        raise ValueError("model.freeze names both phases: nothing would be trained")
+    return tuple(dict.fromkeys(parts))
 
 
 class _EvaluationMixin:
@@ -102,6 +116,10 @@ class DPCNModule(_EvaluationMixin, L.LightningModule):
             nearest to where the template's centre lies in the source: the one the grid
             would ideally pick, so phase 1 learns from windows that share their content).
         translation_threshold: the paper's translation accuracy threshold (px) for metrics.
+        freeze: phases whose two U-Nets are not trained (``"rotation_scale"``,
+            ``"translation"``), e.g. to fine-tune one phase of a trained model (``fit
+            init_from=…``): no gradients, no weight decay, kept in eval mode. A frozen phase 1
+            also runs without autograd (phase 2 only: about a third of the step's time).
     """
 
     def __init__(
@@ -119,6 +137,7 @@ class DPCNModule(_EvaluationMixin, L.LightningModule):
         train_spectrum_window: str = "centred",
         translation_threshold: float = 5.0,
         max_epochs: int | None = None,
+        freeze: list[str] | tuple[str, ...] | None = None,
     ) -> None:
         super().__init__()
         check_number("model.lr", lr, low=0.0, low_open=True)
@@ -134,6 +153,7 @@ class DPCNModule(_EvaluationMixin, L.LightningModule):
             )
         for t in [temperature] if isinstance(temperature, (int, float, str)) else list(temperature):
             check_number("model.temperature", t, low=0.0, low_open=True)
+        frozen = _check_freeze(freeze)
         self.save_hyperparameters()
         net = dict(net or {})
         net.setdefault("train_temperature", temperature if isinstance(temperature, (int, float)) else list(temperature))
@@ -141,7 +161,19 @@ class DPCNModule(_EvaluationMixin, L.LightningModule):
         self.model = DPCN(**net)
         self.loss = DPCNLoss(**(loss or {}))
         self.translation_threshold = translation_threshold
+        self.frozen = frozen
+        for module in self._frozen_modules():
+            module.requires_grad_(False)
         self._reset()
+
+    def _frozen_modules(self) -> list[torch.nn.Module]:
+        return [getattr(self.model, name) for part in self.frozen for name in FREEZABLE[part]]
+
+    def train(self, mode: bool = True) -> DPCNModule:
+        super().train(mode)
+        for module in self._frozen_modules():  # frozen: no normalisation statistics updated either
+            module.eval()
+        return self
 
     # ---------------------------------------------------------------- inference
     def match(self, template: Tensor, source: Tensor) -> Pose:
@@ -176,7 +208,8 @@ class DPCNModule(_EvaluationMixin, L.LightningModule):
             d = self.model.rotation_scale_downsample
             size = (math.ceil(template.shape[-2] / d), math.ceil(template.shape[-1] / d))
             shifts = self.model.nearest_window_shifts(tx, ty, size)
-        rs, rs_features = self.model.rotation_scale(template, source, source_shifts=shifts)
+        with torch.set_grad_enabled(torch.is_grad_enabled() and "rotation_scale" not in self.frozen):
+            rs, rs_features = self.model.rotation_scale(template, source, source_shifts=shifts)
         align = self._alignment(rs_features, gt) if self.loss.weights["kl_align"] else (None, None)
 
         # Phase 1's angle is known modulo 180 degrees; take the half-turn closest to the truth
@@ -221,7 +254,8 @@ class DPCNModule(_EvaluationMixin, L.LightningModule):
         return surface, translation_target(tx / d, ty / d, angle, scale, template.shape[-2:])
 
     def configure_optimizers(self):
-        optimizer = torch.optim.AdamW(self.parameters(), lr=self.hparams.lr, weight_decay=self.hparams.weight_decay)
+        trainable = [p for p in self.parameters() if p.requires_grad]  # frozen U-Nets: not even weight decay
+        optimizer = torch.optim.AdamW(trainable, lr=self.hparams.lr, weight_decay=self.hparams.weight_decay)
         trainer = self._trainer
         if trainer is None or (trainer.max_steps == -1 and trainer.max_epochs in (None, -1)):
             return optimizer  # no known end: constant learning rate
@@ -303,6 +337,23 @@ class ClassicalModule(_EvaluationMixin, L.LightningModule):
         return None
 
 
+def _read_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") -> dict[str, Any]:
+    """The contents of a DPCN Lightning checkpoint; :class:`CheckpointError` naming the problem
+    for a missing, corrupt or foreign file."""
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"checkpoint not found: {path}")
+    try:
+        checkpoint = torch.load(path, map_location=map_location, weights_only=False)
+    except Exception as error:  # torch raises many types for a damaged file
+        raise CheckpointError(f"cannot read checkpoint {path} (corrupt or not a torch file): {error}") from None
+    if not isinstance(checkpoint, dict) or "state_dict" not in checkpoint or "hyper_parameters" not in checkpoint:
+        raise CheckpointError(f"{path} is not a Lightning checkpoint of a dpcn model")
+    if not any(key.startswith("model.") for key in checkpoint["state_dict"]):
+        raise CheckpointError(f"{path} holds no DPCN weights (was it written by `dpcn fit`?)")
+    return checkpoint
+
+
 def load_matcher(
     ckpt_path: str | Path,
     map_location: str | torch.device = "cpu",
@@ -319,16 +370,7 @@ def load_matcher(
     Raises :class:`CheckpointError` naming the problem for a missing, corrupt or foreign file.
     """
     path = Path(ckpt_path)
-    if not path.is_file():
-        raise CheckpointError(f"checkpoint not found: {path}")
-    try:
-        checkpoint = torch.load(path, map_location=map_location, weights_only=False)
-    except Exception as error:  # torch raises many types for a damaged file
-        raise CheckpointError(f"cannot read checkpoint {path} (corrupt or not a torch file): {error}") from None
-    if not isinstance(checkpoint, dict) or "state_dict" not in checkpoint or "hyper_parameters" not in checkpoint:
-        raise CheckpointError(f"{path} is not a Lightning checkpoint of a dpcn model")
-    if not any(key.startswith("model.") for key in checkpoint["state_dict"]):
-        raise CheckpointError(f"{path} holds no DPCN weights (was it written by `dpcn fit`?)")
+    checkpoint = _read_checkpoint(path, map_location)
     try:
         module = DPCNModule(**checkpoint["hyper_parameters"])
         module.load_state_dict(checkpoint["state_dict"])
@@ -343,3 +385,28 @@ def load_matcher(
     if unet_dtype is not None:
         module.model.unet_dtype = unet_dtype
     return module.to(map_location).eval()
+
+
+def load_weights(module: DPCNModule, ckpt_path: str | Path) -> DPCNModule:
+    """Start ``module`` from the network weights of a DPCN checkpoint (``fit init_from=…``).
+
+    Only the weights move (the four U-Nets and the loss temperature): ``module`` keeps its own
+    settings, and training starts afresh (optimiser, learning-rate schedule, epoch 0), which is
+    how a model trained on one data set is fine-tuned on another. The architectures must
+    match; :class:`CheckpointError` lists what differs otherwise. Returns ``module``.
+    """
+    path = Path(ckpt_path)
+    weights = {k[len("model.") :]: v for k, v in _read_checkpoint(path)["state_dict"].items() if k.startswith("model.")}
+    own = module.model.state_dict()
+    problems = [f"{key} missing" for key in own if key not in weights]
+    problems += [f"{key} unexpected" for key in weights if key not in own]
+    problems += [
+        f"{key} is {tuple(weights[key].shape)} there, {tuple(value.shape)} here"
+        for key, value in own.items()
+        if key in weights and weights[key].shape != value.shape
+    ]
+    if problems:
+        shown = "; ".join(problems[:3]) + (f"; and {len(problems) - 3} more" if len(problems) > 3 else "")
+        raise CheckpointError(f"init_from={path}: its network is not this model's ({shown})")
+    module.model.load_state_dict(weights)
+    return module
