@@ -221,7 +221,8 @@ def test_fine_tuning_starts_from_the_weights_and_keeps_the_frozen_phase(trained,
                f"hydra.run.dir={tmp_path / 'bad'}", cwd=tmp_path, check=False)  # fmt: skip
     assert out.returncode == 2 and "Traceback" not in out.stderr
     assert f"init_from={init}: its network is not this model's (" in out.stderr
-    assert "head.weight is (4, 2, 1, 1) there, (2, 2, 1, 1) here" in out.stderr
+    assert "rs_template.head.weight is (4, 2, 1, 1) there, (2, 2, 1, 1) here" in out.stderr
+    assert "Settings that differ: model.net.feature_channels 4 there, 2 here" in out.stderr
 
 
 def test_predict_with_a_checkpoint(trained, tmp_path):

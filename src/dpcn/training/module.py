@@ -387,6 +387,11 @@ def load_matcher(
     return module.to(map_location).eval()
 
 
+def _plain(settings: Any) -> dict[str, Any]:
+    """A configuration mapping with tuples as lists (checkpoints store either)."""
+    return {k: list(v) if isinstance(v, (list, tuple)) else v for k, v in dict(settings).items()}
+
+
 def load_weights(module: DPCNModule, ckpt_path: str | Path) -> DPCNModule:
     """Start ``module`` from the network weights of a DPCN checkpoint (``fit init_from=…``).
 
@@ -396,17 +401,24 @@ def load_weights(module: DPCNModule, ckpt_path: str | Path) -> DPCNModule:
     match; :class:`CheckpointError` lists what differs otherwise. Returns ``module``.
     """
     path = Path(ckpt_path)
-    weights = {k[len("model.") :]: v for k, v in _read_checkpoint(path)["state_dict"].items() if k.startswith("model.")}
+    checkpoint = _read_checkpoint(path)
+    weights = {k[len("model.") :]: v for k, v in checkpoint["state_dict"].items() if k.startswith("model.")}
     own = module.model.state_dict()
-    problems = [f"{key} missing" for key in own if key not in weights]
-    problems += [f"{key} unexpected" for key in weights if key not in own]
-    problems += [
+    problems = [
         f"{key} is {tuple(weights[key].shape)} there, {tuple(value.shape)} here"
         for key, value in own.items()
         if key in weights and weights[key].shape != value.shape
     ]
+    problems += [f"{key} missing" for key in own if key not in weights]
+    problems += [f"{key} unexpected" for key in weights if key not in own]
     if problems:
-        shown = "; ".join(problems[:3]) + (f"; and {len(problems) - 3} more" if len(problems) > 3 else "")
-        raise CheckpointError(f"init_from={path}: its network is not this model's ({shown})")
+        shown = "; ".join(problems[:2]) + (f"; and {len(problems) - 2} more" if len(problems) > 2 else "")
+        # The settings behind the difference, from the two runs' configurations.
+        there = _plain(checkpoint["hyper_parameters"].get("net") or {})
+        here = _plain(module.hparams.get("net") or {})
+        keys = [k for k in sorted(set(there) | set(here)) if there.get(k) != here.get(k)]
+        settings = [f"model.net.{k} {there.get(k)} there, {here.get(k)} here" for k in keys]
+        hint = f". Settings that differ: {'; '.join(settings)}" if settings else ""
+        raise CheckpointError(f"init_from={path}: its network is not this model's ({shown}){hint}")
     module.model.load_state_dict(weights)
     return module
