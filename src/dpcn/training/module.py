@@ -119,7 +119,7 @@ class DPCNModule(_EvaluationMixin, L.LightningModule):
         freeze: phases whose two U-Nets are not trained (``"rotation_scale"``,
             ``"translation"``), e.g. to fine-tune one phase of a trained model (``fit
             init_from=…``): no gradients, no weight decay, kept in eval mode. A frozen phase 1
-            also runs without autograd (phase 2 only: about a third of the step's time).
+            also runs without autograd; its losses are still computed and logged (constants).
     """
 
     def __init__(
