@@ -26,6 +26,7 @@ import torch
 from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 
+from dpcn.cli import inference_settings
 from dpcn.metrics import pose_errors, summarize, thresholds_for
 from dpcn.training.module import CheckpointError, load_matcher
 
@@ -43,12 +44,7 @@ def evaluation_setup(data: str, checkpoint: str | None, overrides: list[str], pr
             classical = compose("config", overrides=[f"data={data}", "model=classical", *overrides])
             return cfg, instantiate(classical.model, _convert_="all"), "classical"
     try:
-        matcher = load_matcher(
-            checkpoint,
-            rotation_hypotheses=cfg.rotation_hypotheses,
-            spectrum_window_grid=cfg.spectrum_window_grid,
-            rotation_views=cfg.rotation_views,
-        )
+        matcher = load_matcher(checkpoint, **inference_settings(cfg))
     except CheckpointError as e:
         raise SystemExit(f"{prog}: {e}") from None
     return cfg, matcher, f"DPCN ({Path(checkpoint).name})"

@@ -30,6 +30,7 @@ import torch
 from hydra.utils import instantiate
 
 from dpcn.metrics import pose_errors, summarize, thresholds_for
+from dpcn.models.dpcn import PHASE_UNETS
 from dpcn.training.module import CheckpointError, load_matcher
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -37,7 +38,6 @@ from bench_coverage import STAGES, evaluation_setup  # noqa: E402  (the same eva
 
 HALF_TURN = 175.0  # degrees: an error this large is the other turn, not a wrong peak
 NEAR = 5.0
-PHASE2 = ("t_template", "t_source")
 
 
 def miss_counts(errors: torch.Tensor, translation_threshold: float) -> dict[str, int]:
@@ -57,7 +57,7 @@ def miss_counts(errors: torch.Tensor, translation_threshold: float) -> dict[str,
 
 def _swap_phase2(matcher, donor_path: str, target_path: str) -> None:
     donor = load_matcher(donor_path)
-    for name in PHASE2:
+    for name in PHASE_UNETS["translation"]:
         try:
             getattr(matcher.model, name).load_state_dict(getattr(donor.model, name).state_dict())
         except RuntimeError as error:

@@ -66,7 +66,7 @@ def _resolve_device(name: str) -> str:
     return name
 
 
-def _inference_settings(cfg: DictConfig) -> dict[str, int | str | None]:
+def inference_settings(cfg: DictConfig) -> dict[str, int | str | None]:
     """The top-level overrides of a checkpoint's inference settings (``None``: keep)."""
     return {
         "rotation_hypotheses": cfg.rotation_hypotheses,
@@ -87,7 +87,7 @@ def run_predict(cfg: DictConfig) -> None:
     if cfg.ckpt_path:
         from .training.module import load_matcher
 
-        matcher = load_matcher(cfg.ckpt_path, device, **_inference_settings(cfg))
+        matcher = load_matcher(cfg.ckpt_path, device, **inference_settings(cfg))
         t, s = prepare_pair(template, source, device)
         pose = matcher.match(t, s)
     else:
@@ -102,15 +102,14 @@ def _run_dir() -> Path:
     return Path(HydraConfig.get().runtime.output_dir)
 
 
-def _check_ckpt(path: str | None, key: str = "ckpt_path") -> Path | None:
+def _check_ckpt(path: str | None) -> Path | None:
     if not path:
         return None
     from .training.module import CheckpointError
 
     p = Path(path)
     if not p.is_file():
-        prefix = "" if key == "ckpt_path" else f"{key}: "
-        raise CheckpointError(f"{prefix}checkpoint not found: {p}")
+        raise CheckpointError(f"checkpoint not found: {p}")
     return p
 
 
@@ -206,7 +205,6 @@ def run_fit(cfg: DictConfig) -> None:
     from .training.module import DPCNModule, load_weights
 
     ckpt = _check_ckpt(cfg.ckpt_path)
-    init = _check_ckpt(cfg.get("init_from"), "init_from")
     L.seed_everything(cfg.seed, workers=True)
     run_dir = _run_dir()
     datamodule = instantiate(cfg.data)
@@ -217,9 +215,9 @@ def run_fit(cfg: DictConfig) -> None:
         from .training.module import load_matcher
 
         load_matcher(ckpt)  # a clear error now rather than a traceback from inside Lightning
-    if init is not None:  # a resumed run (ckpt_path) then restores its own weights over these
-        load_weights(module, init)
-        log.info("starting from the weights of %s", init)
+    if cfg.get("init_from"):  # a resumed run (ckpt_path) then restores its own weights over these
+        load_weights(module, cfg.init_from)
+        log.info("starting from the weights of %s", cfg.init_from)
     log.info("data: %s, run directory: %s", datamodule.name, run_dir)
     trainer = _trainer(cfg, run_dir, fit=True)
     trainer.fit(module, datamodule=datamodule, ckpt_path=str(ckpt) if ckpt else None)
@@ -242,7 +240,7 @@ def _run_evaluation(cfg: DictConfig, stage: str) -> None:
     datamodule = instantiate(cfg.data)
     ckpt = _check_ckpt(cfg.ckpt_path)
     if ckpt is not None:
-        module = load_matcher(ckpt, **_inference_settings(cfg))
+        module = load_matcher(ckpt, **inference_settings(cfg))
         module.translation_threshold = float(cfg.data.translation_threshold)
         name = f"DPCN {ckpt.name}"
     else:

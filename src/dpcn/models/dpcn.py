@@ -46,10 +46,12 @@ from ..ops.logpolar import log_polar_grid, log_radius_step
 from ..pose import Pose, wrap_angle
 from .unet import UNet
 
-__all__ = ["DPCN", "DPCNOutput", "ROTATION_SCALE_POOLING", "UNET_DTYPES", "half_turn"]
+__all__ = ["DPCN", "DPCNOutput", "PHASE_UNETS", "ROTATION_SCALE_POOLING", "UNET_DTYPES", "half_turn"]
 
 ROTATION_SCALE_POOLING = ("average", "space_to_depth")
 UNET_DTYPES = ("float32", "bfloat16")  # inference settings of DPCN.unet_dtype
+# Each phase's two U-Nets (template, source), by attribute name.
+PHASE_UNETS = {"rotation_scale": ("rs_template", "rs_source"), "translation": ("t_template", "t_source")}
 
 
 def half_turn(image: Tensor) -> Tensor:
@@ -267,8 +269,8 @@ class DPCN(nn.Module):
     def unet_dtype(self, value: str) -> None:
         if value not in UNET_DTYPES:
             raise ValueError(f"unet_dtype must be one of {', '.join(UNET_DTYPES)}, got {value!r}")
-        for unet in (self.rs_template, self.rs_source, self.t_template, self.t_source):
-            unet.to(getattr(torch, value))
+        for name in (n for names in PHASE_UNETS.values() for n in names):
+            getattr(self, name).to(getattr(torch, value))
 
     def spectrum_window_shifts(self, height: int, width: int, grid: int) -> list[tuple[int, int]]:
         """Circular shifts ``(rows, cols)`` of a ``height x width`` feature map for a

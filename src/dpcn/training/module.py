@@ -14,7 +14,7 @@ from .._validate import check_int, check_number
 from ..estimator import PhaseCorrelationEstimator, estimate_translation, unwarp_rotation_scale
 from ..io import prepare_pair
 from ..metrics import format_table, pose_errors, summarize, thresholds_for, write_csv
-from ..models.dpcn import DPCN
+from ..models.dpcn import DPCN, PHASE_UNETS
 from ..ops._checks import inputs_checked
 from ..pose import Pose, wrap_angle
 from .losses import DPCNLoss, rotation_scale_target, translation_target
@@ -23,8 +23,7 @@ __all__ = ["DPCNModule", "ClassicalModule", "load_matcher", "load_weights", "Che
 
 
 TRAIN_SPECTRUM_WINDOWS = ("centred", "nearest")
-# Parts of the model that ``freeze`` can hold fixed: each phase's two U-Nets.
-FREEZABLE = {"rotation_scale": ("rs_template", "rs_source"), "translation": ("t_template", "t_source")}
+FREEZABLE = PHASE_UNETS  # what ``freeze`` can hold fixed: a phase's two U-Nets
 
 
 def _warmup_cosine(step: int, total: int, warmup: float = 0.1, floor: float = 0.04) -> float:
@@ -401,7 +400,10 @@ def load_weights(module: DPCNModule, ckpt_path: str | Path) -> DPCNModule:
     match; :class:`CheckpointError` lists what differs otherwise. Returns ``module``.
     """
     path = Path(ckpt_path)
-    checkpoint = _read_checkpoint(path)
+    try:
+        checkpoint = _read_checkpoint(path)
+    except CheckpointError as error:
+        raise CheckpointError(f"init_from: {error}") from None
     weights = {k[len("model.") :]: v for k, v in checkpoint["state_dict"].items() if k.startswith("model.")}
     own = module.model.state_dict()
     problems = [
