@@ -7,7 +7,10 @@ and test pairs (held-out scene) of a data config, and splits the pairs that miss
 rotation threshold into half-turns (error at least 175°: the check chose the wrong turn),
 near misses (1–5°) and wrong peaks (5–175°: phase 1 failed), and counts the pairs found
 within 1° whose translation still misses (x or y beyond the data's threshold), beside the
-paper's accuracies (%).
+paper's accuracies (%). For a checkpoint, ``turn|truth`` counts the pairs whose half-turn
+check picks the wrong turn even when the source is un-warped by the true angle and scale:
+half-turns that phase 2's features cannot settle, whatever phase 1 does (``of them h-t``:
+how many of those the matcher did turn the wrong way).
 
 ``--phase2-from CKPT2`` replaces the checkpoint's phase-2 U-Nets (``t_template``,
 ``t_source``) by CKPT2's before evaluating: two phase-2 trainings compared on the same
@@ -29,6 +32,7 @@ from pathlib import Path
 import torch
 from hydra.utils import instantiate
 
+from dpcn.estimator import unwarp_rotation_scale
 from dpcn.metrics import pose_errors, summarize, thresholds_for
 from dpcn.models.dpcn import PHASE_UNETS
 from dpcn.training.module import CheckpointError, load_matcher
@@ -53,6 +57,18 @@ def miss_counts(errors: torch.Tensor, translation_threshold: float) -> dict[str,
         "5-175": int(((rot > NEAR) & (rot < HALF_TURN)).sum()),
         "xy miss|rot ok": int((found & xy_miss).sum()),
     }
+
+
+def wrong_turn_at_truth(model, template: torch.Tensor, source: torch.Tensor, pose: torch.Tensor) -> torch.Tensor:
+    """``(B,)`` bool: the half-turned source's phase-2 peak is at least as strong as the
+    upright one's when ``source`` is un-warped by the true angle and scale of ``pose``
+    (``(B, 4)``: tx, ty, angle in degrees, scale), i.e. the half-turn check would fail
+    even with a perfect phase 1."""
+    angle, scale = pose[:, 2].to(source.dtype), pose[:, 3].to(source.dtype)
+    with torch.no_grad():
+        unwarped = unwarp_rotation_scale(source, angle, scale)
+        (upright, turned), _, _ = model.translation_turns(template, unwarped, angle, scale)
+    return turned.confidence >= upright.confidence
 
 
 def _swap_phase2(matcher, donor_path: str, target_path: str) -> None:
@@ -89,7 +105,7 @@ def main(argv: list[str] | None = None) -> None:
     datamodule = instantiate(cfg.data)
     threshold = float(cfg.data.translation_threshold)
     print(f"{name} on {args.data}: rotation misses (error > 1 deg) by size; translation misses (> {threshold:g} px)")
-    columns = ["n", "rot>1", "half-turn", "1-5", "5-175", "xy miss|rot ok"]
+    columns = ["n", "rot>1", "half-turn", "1-5", "5-175", "xy miss|rot ok", "turn|truth", "of them h-t"]
     t = f"{threshold:g}"
     accuracies = [
         (f"x@{t}", f"acc_x@{t}"),
@@ -103,15 +119,24 @@ def main(argv: list[str] | None = None) -> None:
         split, label = STAGES[stage]
         datamodule.setup(stage)
         loader = datamodule.val_dataloader() if split == "val" else datamodule.test_dataloader()
-        errors = []
+        errors, wrong_at_truth = [], []
         with torch.no_grad():
             for batch in loader:
                 pose = matcher.match(batch["template"], batch["source"])
                 errors.append(pose_errors(pose.as_tensor().cpu(), batch["pose"]))
+                if args.checkpoint:
+                    model = matcher.model.eval()
+                    wrong_at_truth.append(wrong_turn_at_truth(model, batch["template"], batch["source"], batch["pose"]))
         errors = torch.cat(errors)
         counts, metrics = miss_counts(errors, threshold), summarize(errors, thresholds_for(threshold))
+        if wrong_at_truth:
+            wrong = torch.cat(wrong_at_truth).cpu()
+            counts["turn|truth"] = int(wrong.sum())
+            counts["of them h-t"] = int((wrong & (errors[:, 2] >= HALF_TURN)).sum())
+        else:  # the classical estimator's turn check is not phase 2's
+            counts["turn|truth"] = counts["of them h-t"] = "-"
         cells = (
-            " ".join(f"{counts[c]:>14d}" for c in columns)
+            " ".join(f"{counts[c]:>14}" for c in columns)
             + " "
             + " ".join(f"{metrics[k]:>7.1f}" for _, k in accuracies)
         )

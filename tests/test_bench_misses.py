@@ -45,10 +45,42 @@ def test_classical_rows_add_up(misses, tmp_path, capsys):
     assert lines[0].startswith("classical on s2d")
     cells = lines[2][18:].split()
     n, rot, half, near, wrong, xy = (int(v) for v in cells[:6])
-    assert all(0.0 <= float(v) <= 100.0 for v in cells[6:]) and len(cells) == 10
-    assert float(cells[8]) == pytest.approx(100.0 * (n - rot) / n, abs=0.05)  # rot@1
+    assert cells[6:8] == ["-", "-"]  # turn|truth: phase 2's check only
+    assert all(0.0 <= float(v) <= 100.0 for v in cells[8:]) and len(cells) == 12
+    assert float(cells[10]) == pytest.approx(100.0 * (n - rot) / n, abs=0.05)  # rot@1
     assert lines[2].startswith("held-out scene")
     assert n == 24 and rot == half + near + wrong and 0 <= xy <= n - rot
+
+
+def test_wrong_turn_at_truth_compares_the_two_turns_at_the_true_pose(misses, tmp_path):
+    matcher = misses.load_matcher(_checkpoint(tmp_path / "a.ckpt", 0))
+    model = matcher.model.eval()
+    generator = torch.Generator().manual_seed(0)
+    template = torch.rand(3, 1, 96, 96, generator=generator)
+    pose = torch.tensor([[4.0, -3.0, 30.0, 1.1], [0.0, 0.0, -120.0, 0.9], [2.0, 5.0, 170.0, 1.0]])
+    source = torch.rand(3, 1, 96, 96, generator=generator)
+    flags = misses.wrong_turn_at_truth(model, template, source, pose)
+    angle, scale = pose[:, 2], pose[:, 3]
+    unwarped = misses.unwarp_rotation_scale(source, angle, scale)
+    (upright, turned), _, _ = model.translation_turns(template, unwarped, angle, scale)
+    assert flags.dtype == torch.bool and flags.shape == (3,)
+    assert torch.equal(flags, turned.confidence >= upright.confidence)
+    # Identical extractors and a source that is the template itself, upright: a perfect
+    # upright match, which the check must keep.
+    model.t_source.load_state_dict(model.t_template.state_dict())
+    same = misses.wrong_turn_at_truth(model, template, template, torch.tensor([[0.0, 0.0, 0.0, 1.0]] * 3))
+    assert not same.any()
+
+
+def test_checkpoint_rows_count_wrong_turns_at_the_truth(misses, tmp_path, capsys):
+    root = make_dataset(tmp_path / "maps", n_scenes=3, seed=3, size=(720, 720), gap=0)
+    target = _checkpoint(tmp_path / "a.ckpt", 0)
+    overrides = [f"data.root={root}", "image_size=96", "data.dataset.translation=20", "data.test_length=16"]
+    misses.main(["--data", "s2d", "--checkpoint", str(target), "--stages", "test", "--", *overrides])
+    cells = capsys.readouterr().out.splitlines()[2][18:].split()
+    n, rot, half = (int(v) for v in cells[:3])
+    at_truth, of_them = int(cells[6]), int(cells[7])
+    assert n == 16 and 0 <= of_them <= min(at_truth, half) and at_truth <= n
 
 
 def test_phase2_swap_takes_only_the_translation_unets(misses, tmp_path):
