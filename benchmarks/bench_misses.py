@@ -136,9 +136,7 @@ def main(argv: list[str] | None = None) -> None:
         else:  # the classical estimator's turn check is not phase 2's
             counts["turn|truth"] = counts["of them h-t"] = "-"
         cells = (
-            " ".join(f"{counts[c]:>14}" for c in columns)
-            + " "
-            + " ".join(f"{metrics[k]:>7.1f}" for _, k in accuracies)
+            " ".join(f"{counts[c]:>14}" for c in columns) + " " + " ".join(f"{metrics[k]:>7.1f}" for _, k in accuracies)
         )
         print(f"{label:<18} {cells}")
     sys.stdout.flush()
