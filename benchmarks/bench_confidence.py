@@ -1,0 +1,107 @@
+"""How well a matcher's confidence ranks its matches: accuracy of its most confident pairs.
+
+A pose's confidence (``Pose.confidence``) is the height of the phase-2 correlation peak that
+produced it. A robot that fuses matches (the measurement model of a particle filter, a pose
+graph) needs to know whether a low confidence flags a wrong match. This evaluates a
+checkpoint (or, without ``--checkpoint``, the classical estimator) on the fixed validation
+pairs (held-out regions) and test pairs (held-out scene) of a data config, calls a pair
+correct when x and y are within the data's translation threshold and the rotation within 1°,
+and prints, for the most confident fractions of the pairs (``--keep``), the confidence at that
+cut and the share of those pairs that is correct, then the AUC: the probability that a
+correct pair has a higher confidence than a wrong one (ties count half; 0.5 is no ranking).
+
+    python benchmarks/bench_confidence.py --data s2d --checkpoint CKPT [--keep 1,0.9,0.8,0.5] \
+        [--stages validate,test] [-- rotation_views=4 ...]
+
+Everything after ``--`` is a Hydra override of the evaluation config (as for
+``python -m dpcn test``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+from pathlib import Path
+
+import torch
+from hydra.utils import instantiate
+
+from dpcn.metrics import pose_errors
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_coverage import STAGES, evaluation_setup  # noqa: E402  (the same evaluation set-up)
+
+
+def ranking_auc(correct: torch.Tensor, confidence: torch.Tensor) -> float:
+    """P(confidence of a correct pair > that of a wrong one), ties counted half (the
+    Mann-Whitney statistic); NaN without correct or without wrong pairs. ``(N,)`` each."""
+    good, bad = confidence[correct].double(), confidence[~correct].double()
+    if good.numel() == 0 or bad.numel() == 0:
+        return math.nan
+    above = (good[:, None] > bad[None, :]).double().mean()
+    ties = (good[:, None] == bad[None, :]).double().mean()
+    return float(above + 0.5 * ties)
+
+
+def most_confident(
+    correct: torch.Tensor, confidence: torch.Tensor, keep: list[float]
+) -> list[tuple[float, int, float, float]]:
+    """For each fraction in ``keep``: ``(fraction, pairs kept, lowest confidence kept, % of
+    them correct)``, keeping the ``round(fraction * N)`` (at least 1) most confident pairs."""
+    order = confidence.argsort(descending=True, stable=True)
+    rows = []
+    for fraction in keep:
+        n = max(1, round(fraction * confidence.numel()))
+        kept = order[:n]
+        rows.append((fraction, n, float(confidence[kept].min()), 100.0 * float(correct[kept].double().mean())))
+    return rows
+
+
+def _fractions(text: str) -> list[float]:
+    try:
+        values = [float(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        values = []
+    if not values or any(not 0.0 < v <= 1.0 for v in values):
+        raise argparse.ArgumentTypeError(f"--keep takes fractions in (0, 1], e.g. 1,0.9,0.8,0.5; got {text!r}")
+    return values
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--data", default="s2d", help="data config (l2d, l2sat, s2d, s2sat, sim_...)")
+    parser.add_argument("--checkpoint", help="DPCN checkpoint (default: the classical estimator)")
+    parser.add_argument("--keep", type=_fractions, default=[1.0, 0.9, 0.8, 0.5], help="fractions kept")
+    parser.add_argument("--stages", default="validate,test")
+    parser.add_argument("overrides", nargs="*", help="Hydra overrides (after --)")
+    args = parser.parse_args(argv)
+    stages = [s.strip() for s in args.stages.split(",") if s.strip()]
+    if not stages or any(s not in STAGES for s in stages):
+        parser.error(f"--stages takes validate and/or test, got {args.stages!r}")
+
+    cfg, matcher, name = evaluation_setup(args.data, args.checkpoint, args.overrides, "bench_confidence")
+    datamodule = instantiate(cfg.data)
+    threshold = float(cfg.data.translation_threshold)
+    print(f"{name} on {args.data}: correct = x and y within {threshold:g} px and rotation within 1 deg")
+    print(f"{'pairs':<18} {'kept':>6} {'n':>5} {'confidence >=':>14} {'correct %':>10}")
+    for stage in stages:
+        split, label = STAGES[stage]
+        datamodule.setup(stage)
+        loader = datamodule.val_dataloader() if split == "val" else datamodule.test_dataloader()
+        errors, confidence = [], []
+        with torch.no_grad():
+            for batch in loader:
+                pose = matcher.match(batch["template"], batch["source"])
+                errors.append(pose_errors(pose.as_tensor().cpu(), batch["pose"]))
+                confidence.append(pose.confidence.cpu())
+        errors, confidence = torch.cat(errors), torch.cat(confidence)
+        correct = (errors[:, 0] <= threshold) & (errors[:, 1] <= threshold) & (errors[:, 2] <= 1.0)
+        for fraction, n, lowest, rate in most_confident(correct, confidence, args.keep):
+            print(f"{label:<18} {fraction:>6.0%} {n:>5d} {lowest:>14.4f} {rate:>10.1f}")
+        print(f"{label:<18} AUC {ranking_auc(correct, confidence):.3f}")
+    sys.stdout.flush()
+
+
+if __name__ == "__main__":
+    main()
