@@ -27,10 +27,8 @@ from pathlib import Path
 import torch
 from hydra.utils import instantiate
 
-from dpcn.metrics import pose_errors
-
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_coverage import STAGES, evaluation_setup  # noqa: E402  (the same evaluation set-up)
+from bench_coverage import STAGES, evaluation_setup, matched_batches  # noqa: E402  (the same evaluation set-up)
 
 
 def ranking_auc(correct: torch.Tensor, confidence: torch.Tensor) -> float:
@@ -86,15 +84,11 @@ def main(argv: list[str] | None = None) -> None:
     print(f"{name} on {args.data}: correct = x and y within {threshold:g} px and rotation within 1 deg")
     print(f"{'pairs':<18} {'kept':>6} {'n':>5} {'confidence >=':>14} {'correct %':>10}")
     for stage in stages:
-        split, label = STAGES[stage]
-        datamodule.setup(stage)
-        loader = datamodule.val_dataloader() if split == "val" else datamodule.test_dataloader()
+        label, batches = matched_batches(matcher, datamodule, stage)
         errors, confidence = [], []
-        with torch.no_grad():
-            for batch in loader:
-                pose = matcher.match(batch["template"], batch["source"])
-                errors.append(pose_errors(pose.as_tensor().cpu(), batch["pose"]))
-                confidence.append(pose.confidence.cpu())
+        for _, pose, batch_errors in batches:
+            errors.append(batch_errors)
+            confidence.append(pose.confidence.cpu())
         errors, confidence = torch.cat(errors), torch.cat(confidence)
         correct = (errors[:, 0] <= threshold) & (errors[:, 1] <= threshold) & (errors[:, 2] <= 1.0)
         for fraction, n, lowest, rate in most_confident(correct, confidence, args.keep):

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from collections.abc import Iterator
 from pathlib import Path
 
 import torch
@@ -28,6 +29,7 @@ from hydra.utils import instantiate
 
 from dpcn.cli import inference_settings
 from dpcn.metrics import pose_errors, summarize, thresholds_for
+from dpcn.pose import Pose
 from dpcn.training.module import CheckpointError, load_matcher
 
 CONF = Path(__file__).resolve().parents[1] / "conf"
@@ -50,15 +52,30 @@ def evaluation_setup(data: str, checkpoint: str | None, overrides: list[str], pr
     return cfg, matcher, f"DPCN ({Path(checkpoint).name})"
 
 
-def _errors_and_coverage(matcher, loader) -> tuple[torch.Tensor, torch.Tensor]:
-    errors, coverage = [], []
-    with torch.no_grad():
+def matched_batches(matcher, datamodule, stage: str) -> tuple[str, Iterator[tuple[dict, Pose, torch.Tensor]]]:
+    """The label of ``stage`` (a key of :data:`STAGES`) and, batch by batch over its fixed
+    pairs, ``(batch, pose, errors)``: the matcher's pose and its ``(B, 4)`` absolute errors
+    (``dpcn.metrics.pose_errors``). The benchmarks' shared evaluation loop."""
+    split, label = STAGES[stage]
+    datamodule.setup(stage)
+    loader = datamodule.val_dataloader() if split == "val" else datamodule.test_dataloader()
+
+    def batches() -> Iterator[tuple[dict, Pose, torch.Tensor]]:
         for batch in loader:
-            if "template_mask" not in batch:
-                raise SystemExit("bench_coverage: this data config has no no-data masks (pick a map pair: l2d, ...)")
-            pose = matcher.match(batch["template"], batch["source"])
-            errors.append(pose_errors(pose.as_tensor().cpu(), batch["pose"]))
-            coverage.append(batch["template_mask"].flatten(1).mean(dim=1).double())
+            with torch.no_grad():  # per call: a generator must not leave autograd off between yields
+                pose = matcher.match(batch["template"], batch["source"])
+            yield batch, pose, pose_errors(pose.as_tensor().cpu(), batch["pose"])
+
+    return label, batches()
+
+
+def _errors_and_coverage(batches) -> tuple[torch.Tensor, torch.Tensor]:
+    errors, coverage = [], []
+    for batch, _, batch_errors in batches:
+        if "template_mask" not in batch:
+            raise SystemExit("bench_coverage: this data config has no no-data masks (pick a map pair: l2d, ...)")
+        errors.append(batch_errors)
+        coverage.append(batch["template_mask"].flatten(1).mean(dim=1).double())
     return torch.cat(errors), torch.cat(coverage)
 
 
@@ -87,10 +104,8 @@ def main(argv: list[str] | None = None) -> None:
     print(f"{name} on {args.data}, accuracy (%) by observed fraction of the template crop")
     print(f"{'pairs':<30} {'n':>4} " + " ".join(f"{c:>7}" for c, _ in columns))
     for stage in stages:
-        split, label = STAGES[stage]
-        datamodule.setup(stage)
-        loader = datamodule.val_dataloader() if split == "val" else datamodule.test_dataloader()
-        errors, coverage = _errors_and_coverage(matcher, loader)
+        label, batches = matched_batches(matcher, datamodule, stage)
+        errors, coverage = _errors_and_coverage(batches)
         rows = [(f"{label}, all", torch.ones_like(coverage, dtype=torch.bool))]
         for lo, hi in zip(edges[:-1], edges[1:], strict=True):
             rows.append(

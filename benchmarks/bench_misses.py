@@ -33,12 +33,12 @@ import torch
 from hydra.utils import instantiate
 
 from dpcn.estimator import unwarp_rotation_scale
-from dpcn.metrics import pose_errors, summarize, thresholds_for
+from dpcn.metrics import summarize, thresholds_for
 from dpcn.models.dpcn import PHASE_UNETS
 from dpcn.training.module import CheckpointError, load_matcher
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_coverage import STAGES, evaluation_setup  # noqa: E402  (the same evaluation set-up)
+from bench_coverage import STAGES, evaluation_setup, matched_batches  # noqa: E402  (the same evaluation set-up)
 
 HALF_TURN = 175.0  # degrees: an error this large is the other turn, not a wrong peak
 NEAR = 5.0
@@ -116,17 +116,13 @@ def main(argv: list[str] | None = None) -> None:
     header = " ".join(f"{c:>14}" for c in columns) + " " + " ".join(f"{c:>7}" for c, _ in accuracies)
     print(f"{'pairs':<18} {header}")
     for stage in stages:
-        split, label = STAGES[stage]
-        datamodule.setup(stage)
-        loader = datamodule.val_dataloader() if split == "val" else datamodule.test_dataloader()
+        label, batches = matched_batches(matcher, datamodule, stage)
         errors, wrong_at_truth = [], []
-        with torch.no_grad():
-            for batch in loader:
-                pose = matcher.match(batch["template"], batch["source"])
-                errors.append(pose_errors(pose.as_tensor().cpu(), batch["pose"]))
-                if args.checkpoint:
-                    model = matcher.model.eval()
-                    wrong_at_truth.append(wrong_turn_at_truth(model, batch["template"], batch["source"], batch["pose"]))
+        for batch, _, batch_errors in batches:
+            errors.append(batch_errors)
+            if args.checkpoint:
+                model = matcher.model.eval()
+                wrong_at_truth.append(wrong_turn_at_truth(model, batch["template"], batch["source"], batch["pose"]))
         errors = torch.cat(errors)
         counts, metrics = miss_counts(errors, threshold), summarize(errors, thresholds_for(threshold))
         if wrong_at_truth:
