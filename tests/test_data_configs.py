@@ -94,7 +94,7 @@ def test_missing_root_is_a_clear_error(tmp_path):
 @pytest.mark.parametrize(
     "args,epochs",
     [
-        ([], 12),  # the simulated pairs: the trainer config's length
+        ([], 16),  # the simulated pairs: the trainer config's length
         (["data=l2d"], 5),  # the map pairs set their own (within 30 min on 2 CPU cores)
         (["data=l2sat", "trainer=gpu"], 5),
         (["data=s2sat"], 7),
