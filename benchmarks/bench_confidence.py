@@ -28,7 +28,7 @@ import torch
 from hydra.utils import instantiate
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_coverage import STAGES, evaluation_setup, matched_batches  # noqa: E402  (the same evaluation set-up)
+from bench_coverage import evaluation_parser, evaluation_setup, matched_batches, parse_stages  # noqa: E402  (the same evaluation set-up)
 
 
 def ranking_auc(correct: torch.Tensor, confidence: torch.Tensor) -> float:
@@ -67,16 +67,10 @@ def _fractions(text: str) -> list[float]:
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--data", default="s2d", help="data config (l2d, l2sat, s2d, s2sat, sim_...)")
-    parser.add_argument("--checkpoint", help="DPCN checkpoint (default: the classical estimator)")
+    parser = evaluation_parser(__doc__, "data config (l2d, l2sat, s2d, s2sat, sim_...)")
     parser.add_argument("--keep", type=_fractions, default=[1.0, 0.9, 0.8, 0.5], help="fractions kept")
-    parser.add_argument("--stages", default="validate,test")
-    parser.add_argument("overrides", nargs="*", help="Hydra overrides (after --)")
     args = parser.parse_args(argv)
-    stages = [s.strip() for s in args.stages.split(",") if s.strip()]
-    if not stages or any(s not in STAGES for s in stages):
-        parser.error(f"--stages takes validate and/or test, got {args.stages!r}")
+    stages = parse_stages(parser, args.stages)
 
     cfg, matcher, name = evaluation_setup(args.data, args.checkpoint, args.overrides, "bench_confidence")
     datamodule = instantiate(cfg.data)

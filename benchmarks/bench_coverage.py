@@ -36,6 +36,25 @@ CONF = Path(__file__).resolve().parents[1] / "conf"
 STAGES = {"validate": ("val", "held-out regions"), "test": ("test", "held-out scene")}
 
 
+def evaluation_parser(doc: str, data_help: str) -> argparse.ArgumentParser:
+    """The evaluation benchmarks' shared arguments: ``--data``, ``--checkpoint``, ``--stages``
+    and the Hydra overrides after ``--``; each script adds its own options."""
+    parser = argparse.ArgumentParser(description=doc.split("\n\n")[0])
+    parser.add_argument("--data", default="s2d", help=data_help)
+    parser.add_argument("--checkpoint", help="DPCN checkpoint (default: the classical estimator)")
+    parser.add_argument("--stages", default="validate,test")
+    parser.add_argument("overrides", nargs="*", help="Hydra overrides (after --)")
+    return parser
+
+
+def parse_stages(parser: argparse.ArgumentParser, text: str) -> list[str]:
+    """``--stages``' comma-separated keys of :data:`STAGES` (a usage error otherwise)."""
+    stages = [s.strip() for s in text.split(",") if s.strip()]
+    if not stages or any(s not in STAGES for s in stages):
+        parser.error(f"--stages takes validate and/or test, got {text!r}")
+    return stages
+
+
 def evaluation_setup(data: str, checkpoint: str | None, overrides: list[str], prog: str):
     """``(config, matcher, name)`` for evaluating a checkpoint (its inference settings replaced
     by the top-level overrides) or, without one, the classical estimator, on a data config.
@@ -80,17 +99,10 @@ def _errors_and_coverage(batches) -> tuple[torch.Tensor, torch.Tensor]:
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--data", default="s2d", help="map data config (l2d, l2sat, s2d, s2sat)")
-    parser.add_argument("--checkpoint", help="DPCN checkpoint (default: the classical estimator)")
+    parser = evaluation_parser(__doc__, "map data config (l2d, l2sat, s2d, s2sat)")
     parser.add_argument("--bins", type=float, nargs="+", default=[0.3, 0.45, 0.6], help="bin edges (fraction)")
-    parser.add_argument("--stages", default="validate,test")
-    parser.add_argument("overrides", nargs="*", help="Hydra overrides (after --)")
     args = parser.parse_args(argv)
-    stages = [s.strip() for s in args.stages.split(",") if s.strip()]
-    unknown = [s for s in stages if s not in STAGES]
-    if unknown or not stages:
-        parser.error(f"--stages takes validate and/or test, got {args.stages!r}")
+    stages = parse_stages(parser, args.stages)
     edges = sorted(set([0.0, *args.bins, 1.0 + 1e-9]))
     if any(not 0.0 <= e <= 1.0 + 1e-9 for e in edges):
         parser.error(f"--bins are fractions in [0, 1], got {args.bins}")

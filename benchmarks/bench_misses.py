@@ -25,7 +25,6 @@ Everything after ``--`` is a Hydra override of the evaluation config (as for
 
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
 
@@ -38,7 +37,7 @@ from dpcn.models.dpcn import PHASE_UNETS
 from dpcn.training.module import CheckpointError, load_matcher
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_coverage import STAGES, evaluation_setup, matched_batches  # noqa: E402  (the same evaluation set-up)
+from bench_coverage import evaluation_parser, evaluation_setup, matched_batches, parse_stages  # noqa: E402  (the same evaluation set-up)
 
 HALF_TURN = 175.0  # degrees: an error this large is the other turn, not a wrong peak
 NEAR = 5.0
@@ -82,16 +81,10 @@ def _swap_phase2(matcher, donor_path: str, target_path: str) -> None:
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--data", default="s2d", help="data config (l2d, l2sat, s2d, s2sat, sim_...)")
-    parser.add_argument("--checkpoint", help="DPCN checkpoint (default: the classical estimator)")
+    parser = evaluation_parser(__doc__, "data config (l2d, l2sat, s2d, s2sat, sim_...)")
     parser.add_argument("--phase2-from", help="take the phase-2 U-Nets from this checkpoint")
-    parser.add_argument("--stages", default="validate,test")
-    parser.add_argument("overrides", nargs="*", help="Hydra overrides (after --)")
     args = parser.parse_args(argv)
-    stages = [s.strip() for s in args.stages.split(",") if s.strip()]
-    if not stages or any(s not in STAGES for s in stages):
-        parser.error(f"--stages takes validate and/or test, got {args.stages!r}")
+    stages = parse_stages(parser, args.stages)
     if args.phase2_from and not args.checkpoint:
         parser.error("--phase2-from needs --checkpoint (the classical estimator has no phase-2 U-Nets)")
 
