@@ -45,6 +45,7 @@ TIMED_SETTINGS = (  # the preset's architecture and its cost-bearing inference s
     "spectrum_window_grid",
     "spectrum_window_step",
     "rotation_views",
+    "inference_radii",
 )
 
 

@@ -399,6 +399,32 @@ def test_rotation_views_validation_and_an_opencv_pose():
     assert small_dpcn(image_size=(128, 96), rotation_views=2).rotation_views == 2
 
 
+def test_inference_radii_change_inference_only_and_recover_an_opencv_pose():
+    torch.manual_seed(0)
+    image = photo("astronaut", (128, 128))
+    template = torch.from_numpy(image)[None, None]
+    source = torch.from_numpy(cv2_warp(image, -9.0, 12.0, -35.0, 0.9))[None, None]
+    model = DPCN(base_channels=2, depth=1, input_skip=True, image_size=(128, 128), n_radii=256).eval()
+    assert model.inference_radii is None
+    with torch.no_grad():
+        full = model(template, source)
+        model.inference_radii = 96
+        fewer = model(template, source)
+        trained_on, _ = model.rotation_scale(template, source)  # what training sees: n_radii
+    assert full.rotation_scale.surface.shape == (1, 256, 256) and trained_on.surface.shape == (1, 256, 256)
+    assert fewer.rotation_scale.surface.shape == (1, 256, 96)
+    for out in (full, fewer):
+        assert angle_error(out.pose.angle, -35.0) < 0.5 and abs(float(out.pose.scale) - 0.9) < 0.01
+        assert abs(float(out.pose.tx) + 9.0) < 1.0 and abs(float(out.pose.ty) - 12.0) < 1.0
+    for bad in (1, 0, 64.0, True, "128"):
+        with pytest.raises(ValueError, match="inference_radii must be an integer >= 2 or None"):
+            model.inference_radii = bad
+    with pytest.raises(ValueError, match="inference_radii must be an integer >= 2 or None, got 1"):
+        small_dpcn(inference_radii=1)
+    model.inference_radii = None
+    assert model.inference_radii is None
+
+
 def test_spectrum_window_grid_recovers_an_opencv_pose_with_a_large_shift():
     torch.manual_seed(0)
     image = photo("astronaut", (128, 128))

@@ -176,18 +176,28 @@ def test_validate_and_test_print_the_paper_table(trained, tmp_path):
     rows = list(csv.DictReader((tmp_path / "t" / "metrics_test.csv").open()))
     assert rows[0]["n"] == "4.0" and 0.0 <= float(rows[0]["acc_scale@0.2"]) <= 100.0
     # inference settings replace the checkpoint's
-    inference = ["rotation_hypotheses=3", "spectrum_window_grid=3", "rotation_views=4", "unet_dtype=bfloat16"]
+    inference = [
+        "rotation_hypotheses=3",
+        "spectrum_window_grid=3",
+        "rotation_views=4",
+        "unet_dtype=bfloat16",
+        "inference_radii=16",
+    ]
     out = dpcn("test", *SMALL, f"ckpt_path={ckpt}", *inference, f"hydra.run.dir={tmp_path / 'k'}", cwd=tmp_path)
     assert "acc_rot@1" in out.stdout and (tmp_path / "k" / "metrics_test.csv").is_file()
-    matcher = load_matcher(ckpt, rotation_hypotheses=2, spectrum_window_grid=5, rotation_views=8, unet_dtype="bfloat16")
+    matcher = load_matcher(
+        ckpt, rotation_hypotheses=2, spectrum_window_grid=5, rotation_views=8, unet_dtype="bfloat16", inference_radii=24
+    )
     model = matcher.model
     assert (model.rotation_hypotheses, model.spectrum_window_grid, model.rotation_views) == (2, 5, 8)
     assert model.unet_dtype == "bfloat16" and load_matcher(ckpt).model.unet_dtype == "float32"
+    assert model.inference_radii == 24 and load_matcher(ckpt).model.inference_radii is None
     for setting, message in [
         ("rotation_hypotheses=0", "rotation_hypotheses must be an integer >= 1, got 0"),
         ("spectrum_window_grid=2", "spectrum_window_grid must be an odd integer >= 1, got 2"),
         ("rotation_views=9", "rotation_views must be an integer from 1 to 8, got 9"),
         ("unet_dtype=float16", "unet_dtype must be one of float32, bfloat16, got 'float16'"),
+        ("inference_radii=1", "inference_radii must be an integer >= 2 or None, got 1"),
     ]:
         run = tmp_path / setting.split("=")[0]
         bad = dpcn("test", *SMALL, f"ckpt_path={ckpt}", setting, f"hydra.run.dir={run}", cwd=tmp_path, check=False)

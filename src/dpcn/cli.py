@@ -73,6 +73,7 @@ def inference_settings(cfg: DictConfig) -> dict[str, int | str | None]:
         "spectrum_window_grid": cfg.spectrum_window_grid,
         "rotation_views": cfg.rotation_views,
         "unet_dtype": cfg.get("unet_dtype"),
+        "inference_radii": cfg.get("inference_radii"),
     }
 
 

@@ -117,6 +117,12 @@ class DPCN(nn.Module):
             dihedral views of the pair (1-8, see :func:`~dpcn.estimator.dihedral_views`: 2 adds
             the mirrored pair, 4 and 8 quarter turns too, for square images); each view costs
             one more pass of both phase-1 U-Nets and spectra.
+        inference_radii: at inference, phase 1's log-polar maps have this many radii instead
+            of ``n_radii`` (``None``: ``n_radii``); the same radius range, so each column spans
+            ``n_radii / inference_radii`` times the log-scale step. Training always uses
+            ``n_radii``: the U-Nets come before the log-polar resampling, so their weights do
+            not depend on it. Half the radii halve the cost of phase 1's log-polar maps and
+            their DFTs (README, Benchmarks).
     """
 
     def __init__(
@@ -151,6 +157,7 @@ class DPCN(nn.Module):
         spectrum_window_grid: int = 1,
         spectrum_window_step: float = 0.125,
         rotation_views: int = 1,
+        inference_radii: int | None = None,
     ) -> None:
         super().__init__()
         # Config values by name (they may arrive as strings from the command line).
@@ -214,6 +221,7 @@ class DPCN(nn.Module):
         self.spectrum_window_grid = spectrum_window_grid
         self.spectrum_window_step = float(spectrum_window_step)
         self.rotation_views = rotation_views
+        self.inference_radii = inference_radii
         if isinstance(train_temperature, (int, float, str)):
             train_temperature = (train_temperature, train_temperature)
         check_sequence("train_temperature", train_temperature, 2, "one number or two")
@@ -255,6 +263,18 @@ class DPCN(nn.Module):
     @rotation_views.setter
     def rotation_views(self, value: int) -> None:
         self._rotation_views = check_views(value, self.image_size)
+
+    @property
+    def inference_radii(self) -> int | None:
+        """Radii of phase 1's log-polar maps at inference (``None``: ``n_radii``; settable)."""
+        return self._inference_radii
+
+    @inference_radii.setter
+    def inference_radii(self, value: int | None) -> None:
+        if value is not None:
+            if isinstance(value, bool) or not isinstance(value, int) or value < 2:
+                raise ValueError(f"inference_radii must be an integer >= 2 or None, got {value!r}")
+        self._inference_radii = value
 
     @property
     def unet_dtype(self) -> str:
@@ -337,6 +357,7 @@ class DPCN(nn.Module):
         window_grid: int = 1,
         views: int = 1,
         source_shifts: Tensor | None = None,
+        radii: int | None = None,
     ) -> tuple[RotationScale, dict[str, Tensor]]:
         """Phase 1: features, then rotation (mod 180 degrees) and scale (and the next
         strongest peaks, ``hypotheses`` in all, as ``candidate_*``), with the source spectrum
@@ -345,7 +366,8 @@ class DPCN(nn.Module):
 
         ``source_shifts`` (training, with one window and one view): ``(B, 2)`` integer circular
         shifts ``(rows, cols)`` of each pair's source features before the spectrum, which moves
-        its window (see :meth:`nearest_window_shifts`).
+        its window (see :meth:`nearest_window_shifts`). ``radii``: columns of the log-polar
+        maps (``None``: ``n_radii``, what training uses).
 
         The features are ``(B, C, H / d, W / d)`` with ``d = rotation_scale_downsample`` (of
         the first view, the pair as given), unshifted.
@@ -360,7 +382,7 @@ class DPCN(nn.Module):
             windowed = torch.stack(
                 [torch.roll(f, tuple(s), dims=(-2, -1)) for f, s in zip(rs_source, shifts, strict=True)]
             )
-        rs = self.rotation_scale_from_features(rs_template, windowed, hypotheses, window_grid, views)
+        rs = self.rotation_scale_from_features(rs_template, windowed, hypotheses, window_grid, views, radii)
         batch = template.shape[0]
         return rs, {"rs_template": rs_template[:batch], "rs_source": rs_source[:batch]}
 
@@ -371,15 +393,16 @@ class DPCN(nn.Module):
         hypotheses: int = 1,
         window_grid: int = 1,
         views: int = 1,
+        radii: int | None = None,
     ) -> RotationScale:
         """Phase 1's estimate from ``(B, C, h, w)`` feature maps (``(views * B, C, h, w)``:
         those of dihedral views), with this model's log-polar and peak settings (also for
-        maps from elsewhere, e.g. to compare extractors)."""
+        maps from elsewhere, e.g. to compare extractors); ``radii`` replaces ``n_radii``."""
         return estimate_rotation_scale(
             template_features,
             source_features,
             n_angles=self.n_angles,
-            n_radii=self.n_radii,
+            n_radii=self.n_radii if radii is None else radii,
             min_radius=self.min_radius,
             max_radius=self.max_radius,
             highpass=self.highpass,
@@ -478,7 +501,9 @@ class DPCN(nn.Module):
         self.check_inputs(template, source)
         k = self.rotation_hypotheses
         with inputs_checked():
-            rs, features = self.rotation_scale(template, source, k, self.spectrum_window_grid, self.rotation_views)
+            rs, features = self.rotation_scale(
+                template, source, k, self.spectrum_window_grid, self.rotation_views, radii=self.inference_radii
+            )
             angle, scale = rs.candidate_angle.flatten(), rs.candidate_scale.flatten()  # (B * K,)
             candidates = source.repeat_interleave(k, dim=0) if k > 1 else source
             unwarped = unwarp_rotation_scale(candidates, angle, scale)

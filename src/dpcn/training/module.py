@@ -360,11 +360,12 @@ def load_matcher(
     spectrum_window_grid: int | None = None,
     rotation_views: int | None = None,
     unet_dtype: str | None = None,
+    inference_radii: int | None = None,
 ) -> DPCNModule:
     """Load a DPCN checkpoint ready for ``.match(template, source) -> Pose`` (eval mode).
 
-    ``rotation_hypotheses``, ``spectrum_window_grid``, ``rotation_views`` and ``unet_dtype``
-    replace the checkpoint's inference settings of those names (see :class:`~dpcn.models.DPCN`);
+    ``rotation_hypotheses``, ``spectrum_window_grid``, ``rotation_views``, ``unet_dtype`` and
+    ``inference_radii`` replace the checkpoint's inference settings of those names (see :class:`~dpcn.models.DPCN`);
     ``None`` keeps them.
     Raises :class:`CheckpointError` naming the problem for a missing, corrupt or foreign file.
     """
@@ -383,6 +384,8 @@ def load_matcher(
         module.model.rotation_views = rotation_views
     if unet_dtype is not None:
         module.model.unet_dtype = unet_dtype
+    if inference_radii is not None:
+        module.model.inference_radii = inference_radii
     return module.to(map_location).eval()
 
 
