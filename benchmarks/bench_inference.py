@@ -7,6 +7,7 @@ the cost does not depend on them.
 
     python benchmarks/bench_inference.py [--device cpu|cuda] [--threads 2] [--batch 32] [--ckpt last.ckpt]
         [--window-grids 1,3] [--hypotheses 1,3] [--views 1,2,8]   # also time other stage-1 inference settings
+        [--radii 128,256]                                         # DPCN.inference_radii
         [--unet-dtype bfloat16]                                   # DPCN.unet_dtype
 """
 
@@ -84,6 +85,7 @@ def main() -> None:
     parser.add_argument("--hypotheses", default=None, help="comma-separated rotation_hypotheses values to time")
     parser.add_argument("--window-grids", default=None, help="comma-separated spectrum_window_grid values to time")
     parser.add_argument("--views", default=None, help="comma-separated rotation_views values to time")
+    parser.add_argument("--radii", default=None, help="comma-separated inference_radii values to time")
     parser.add_argument("--bf16", action="store_true", help="autocast the U-Nets to bfloat16 (GPU)")
     parser.add_argument("--unet-dtype", choices=UNET_DTYPES, default=None, help="DPCN.unet_dtype of the timed models")
     args = parser.parse_args()
@@ -104,6 +106,7 @@ def main() -> None:
         ("spectrum_window_grid", args.window_grids, "grid"),
         ("rotation_hypotheses", args.hypotheses, "K"),
         ("rotation_views", args.views, "views"),
+        ("inference_radii", args.radii, "radii"),
     ):
         if values:  # one copy per value, same weights
             for label, model in list(models.items()):

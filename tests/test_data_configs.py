@@ -124,6 +124,21 @@ def test_phase2_share_per_data_config(args, fraction):
         assert compose_config(*args, "model=classical").model._target_.endswith("ClassicalModule")
 
 
+@pytest.mark.parametrize(
+    "args,radii",
+    [
+        ([], (256, 128)),  # tiny trains on 256 log-polar radii and infers on 128
+        (["data=l2d"], (256, None)),  # the map pairs' models keep 256 at inference too
+        (["data=s2d"], (256, None)),
+        (["data=s2sat", "model=tiny"], (256, 128)),
+        (["model=paper"], (256, None)),
+    ],
+)
+def test_log_polar_radii_per_model_config(args, radii):
+    net = compose_config(*args).model.net
+    assert (net.n_radii, net.get("inference_radii")) == radii
+
+
 def test_a_bad_dataset_value_names_its_key(tmp_path):
     dm = instantiate(compose_config("data=l2sat", f"data.root={tmp_path}", "data.dataset.min_valid=2").data)
     with pytest.raises(ValueError, match=r"^data\.dataset: min_valid must be in \[0, 1\], got 2"):
