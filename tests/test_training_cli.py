@@ -191,7 +191,7 @@ def test_validate_and_test_print_the_paper_table(trained, tmp_path):
     model = matcher.model
     assert (model.rotation_hypotheses, model.spectrum_window_grid, model.rotation_views) == (2, 5, 8)
     assert model.unet_dtype == "bfloat16" and load_matcher(ckpt).model.unet_dtype == "float32"
-    assert model.inference_radii == 24 and load_matcher(ckpt).model.inference_radii is None
+    assert model.inference_radii == 24 and load_matcher(ckpt).model.inference_radii == 128  # tiny's, stored
     for setting, message in [
         ("rotation_hypotheses=0", "rotation_hypotheses must be an integer >= 1, got 0"),
         ("spectrum_window_grid=2", "spectrum_window_grid must be an odd integer >= 1, got 2"),
