@@ -376,16 +376,16 @@ def load_matcher(
         module.load_state_dict(checkpoint["state_dict"])
     except (TypeError, RuntimeError, ValueError) as error:
         raise CheckpointError(f"checkpoint {path} does not fit this version of dpcn: {error}") from None
-    if rotation_hypotheses is not None:
-        module.model.rotation_hypotheses = rotation_hypotheses
-    if spectrum_window_grid is not None:
-        module.model.spectrum_window_grid = spectrum_window_grid
-    if rotation_views is not None:
-        module.model.rotation_views = rotation_views
-    if unet_dtype is not None:
-        module.model.unet_dtype = unet_dtype
-    if inference_radii is not None:
-        module.model.inference_radii = inference_radii
+    settings = {
+        "rotation_hypotheses": rotation_hypotheses,
+        "spectrum_window_grid": spectrum_window_grid,
+        "rotation_views": rotation_views,
+        "unet_dtype": unet_dtype,
+        "inference_radii": inference_radii,
+    }
+    for name, value in settings.items():
+        if value is not None:
+            setattr(module.model, name, value)  # DPCN's setters validate
     return module.to(map_location).eval()
 
 
