@@ -2,7 +2,9 @@
 
 256x256 single-channel pairs, end to end (all four U-Nets, both phases, the half-turn check),
 no ground truth. Reports the latency of one pair (batch 1) and the throughput of batches, as
-the median of several timed rounds after a warm-up. Weights are random unless --ckpt is given:
+the median of several timed rounds after a warm-up. Each round times every model once, in
+turn, so a slow spell of a shared machine falls on all of them alike and the ratios between
+rows hold even when the absolute numbers drift. Weights are random unless --ckpt is given:
 the cost does not depend on them.
 
     python benchmarks/bench_inference.py [--device cpu|cuda] [--threads 2] [--batch 32] [--ckpt last.ckpt]
@@ -17,6 +19,8 @@ import argparse
 import copy
 import statistics
 import time
+from collections.abc import Callable
+from functools import partial
 from pathlib import Path
 
 import torch
@@ -57,23 +61,28 @@ def preset(name: str) -> dict:
     return {key: net[key] for key in TIMED_SETTINGS if key in net}
 
 
-def timed(fn, device: str, rounds: int) -> float:
-    """Median seconds of ``fn()`` over ``rounds`` runs after two warm-up runs."""
-    for _ in range(2):
-        fn()
-    times = []
+def timed_in_turn(
+    calls: dict[str, Callable[[], object]], device: str, rounds: int, warmup: int = 3
+) -> dict[str, float]:
+    """Median seconds of each call over ``rounds`` rounds, each of which runs every call once
+    in turn, after ``warmup`` untimed runs of each."""
+    for call in calls.values():
+        for _ in range(warmup):
+            call()
+    times: dict[str, list[float]] = {label: [] for label in calls}
     for _ in range(rounds):
-        if device.startswith("cuda"):
-            torch.cuda.synchronize()
-        start = time.perf_counter()
-        fn()
-        if device.startswith("cuda"):
-            torch.cuda.synchronize()
-        times.append(time.perf_counter() - start)
-    return statistics.median(times)
+        for label, call in calls.items():
+            if device.startswith("cuda"):
+                torch.cuda.synchronize()
+            start = time.perf_counter()
+            call()
+            if device.startswith("cuda"):
+                torch.cuda.synchronize()
+            times[label].append(time.perf_counter() - start)
+    return {label: statistics.median(values) for label, values in times.items()}
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     parser.add_argument("--threads", type=int, default=2)
@@ -88,7 +97,7 @@ def main() -> None:
     parser.add_argument("--radii", default=None, help="comma-separated inference_radii values to time")
     parser.add_argument("--bf16", action="store_true", help="autocast the U-Nets to bfloat16 (GPU)")
     parser.add_argument("--unet-dtype", choices=UNET_DTYPES, default=None, help="DPCN.unet_dtype of the timed models")
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
     device = args.device
     name = torch.cuda.get_device_name() if device.startswith("cuda") else f"CPU, {args.threads} threads"
@@ -122,21 +131,24 @@ def main() -> None:
 
     generator = torch.Generator().manual_seed(0)
     pairs = torch.rand(2, args.batch, 1, args.size, args.size, generator=generator).to(device)
+
+    def run(model: torch.nn.Module, n: int) -> None:
+        # DPCN.match: what users call (batches chunked on CPUs); the classical estimator has
+        # no chunking.
+        infer = getattr(model, "match", model)
+        with torch.inference_mode(), torch.autocast(device.split(":")[0], torch.bfloat16, enabled=args.bf16):
+            infer(pairs[0, :n], pairs[1, :n])
+
+    models = {label: model.to(device).eval() for label, model in models.items()}
+    one = timed_in_turn({label: partial(run, model, 1) for label, model in models.items()}, device, args.rounds)
+    many = timed_in_turn(
+        {label: partial(run, model, args.batch) for label, model in models.items()}, device, max(3, args.rounds // 3)
+    )
     print(f"{'model':34s} {'params':>9s} {'1 pair (ms)':>12s} {f'batch {args.batch} (ms/pair)':>20s} {'pairs/s':>9s}")
     for label, model in models.items():
-        model = model.to(device).eval()
         params = sum(p.numel() for p in model.parameters())
-
-        def run(n: int, model=model) -> None:
-            # DPCN.match: what users call (batches chunked on CPUs); the classical estimator has
-            # no chunking.
-            infer = getattr(model, "match", model)
-            with torch.inference_mode(), torch.autocast(device.split(":")[0], torch.bfloat16, enabled=args.bf16):
-                infer(pairs[0, :n], pairs[1, :n])
-
-        one = timed(lambda: run(1), device, args.rounds)
-        many = timed(lambda: run(args.batch), device, max(3, args.rounds // 3)) / args.batch
-        print(f"{label:34s} {params:9d} {1000 * one:12.1f} {1000 * many:20.2f} {1 / many:9.0f}")
+        per_pair = many[label] / args.batch
+        print(f"{label:34s} {params:9d} {1000 * one[label]:12.1f} {1000 * per_pair:20.2f} {1 / per_pair:9.0f}")
 
 
 if __name__ == "__main__":
