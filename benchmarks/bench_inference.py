@@ -144,11 +144,14 @@ def main(argv: list[str] | None = None) -> None:
     many = timed_in_turn(
         {label: partial(run, model, args.batch) for label, model in models.items()}, device, max(3, args.rounds // 3)
     )
-    print(f"{'model':34s} {'params':>9s} {'1 pair (ms)':>12s} {f'batch {args.batch} (ms/pair)':>20s} {'pairs/s':>9s}")
+    width = max(34, *(len(label) for label in models))
+    print(
+        f"{'model':{width}s} {'params':>9s} {'1 pair (ms)':>12s} {f'batch {args.batch} (ms/pair)':>20s} {'pairs/s':>9s}"
+    )
     for label, model in models.items():
         params = sum(p.numel() for p in model.parameters())
         per_pair = many[label] / args.batch
-        print(f"{label:34s} {params:9d} {1000 * one[label]:12.1f} {1000 * per_pair:20.2f} {1 / per_pair:9.0f}")
+        print(f"{label:{width}s} {params:9d} {1000 * one[label]:12.1f} {1000 * per_pair:20.2f} {1 / per_pair:9.0f}")
 
 
 if __name__ == "__main__":

@@ -1,5 +1,7 @@
 """The inference-speed benchmark: rounds taken in turn, one row per timed model."""
 
+import re
+
 import pytest
 
 from .conftest import load_benchmark
@@ -20,12 +22,19 @@ def test_rounds_run_every_call_in_turn_after_its_warmup(bench):
 
 
 def test_prints_one_row_per_variant_and_the_classical_estimator(bench, capsys):
-    bench.main(["--presets", "tiny", "--size", "64", "--batch", "2", "--rounds", "1", "--radii", "64,32"])
+    args = ["--presets", "tiny", "--size", "64", "--batch", "2", "--rounds", "1", "--radii", "64,32"]
+    bench.main([*args, "--unet-dtype", "bfloat16"])
     lines = capsys.readouterr().out.splitlines()
-    rows = [line for line in lines[2:] if line.strip()]
-    labels = [row[:34].strip() for row in rows]
-    assert labels == ["DPCN tiny, radii=64", "DPCN tiny, radii=32", "classical (no U-Nets)"]
+    rows = [re.split(r"\s{2,}", line.strip()) for line in lines[2:] if line.strip()]
+    labels = [row[0] for row in rows]
+    assert labels == [
+        "DPCN tiny, radii=64, bfloat16 U-Nets",  # longer than the default column: still its own column
+        "DPCN tiny, radii=32, bfloat16 U-Nets",
+        "classical (no U-Nets)",
+    ]
     for row in rows:  # params, ms per pair alone and in batches, pairs per second
-        params, one, batched, rate = row[34:].split()
+        params, one, batched, rate = row[1:]
         assert float(one) > 0 and float(batched) > 0 and int(rate) > 0
-    assert int(rows[0][34:].split()[0]) > 0 and int(rows[2][34:].split()[0]) == 0
+    assert int(rows[0][1]) > 0 and int(rows[2][1]) == 0
+    params_end = lines[1].index("params") + len("params")  # the columns line up under the header
+    assert all(line[:params_end].endswith(row[1]) for line, row in zip(lines[2:], rows, strict=True))
