@@ -82,19 +82,42 @@ def timed_in_turn(
     return {label: statistics.median(values) for label, values in times.items()}
 
 
+def positive_int(text: str) -> int:
+    """argparse type: an integer >= 1."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {text!r}")
+    return value
+
+
+def int_list(text: str) -> list[int]:
+    """argparse type: comma-separated integers (each setting's own check comes later)."""
+    try:
+        return [int(v) for v in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated integers, got {text!r}") from None
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
-    parser.add_argument("--threads", type=int, default=2)
-    parser.add_argument("--batch", type=int, default=32)
-    parser.add_argument("--size", type=int, default=256)
-    parser.add_argument("--rounds", type=int, default=10)
+    parser.add_argument("--threads", type=positive_int, default=2)
+    parser.add_argument("--batch", type=positive_int, default=32)
+    parser.add_argument("--size", type=positive_int, default=256)
+    parser.add_argument("--rounds", type=positive_int, default=10)
     parser.add_argument("--presets", default="tiny,paper")
     parser.add_argument("--ckpt", default=None, help="time this checkpoint instead of randomly initialised presets")
-    parser.add_argument("--hypotheses", default=None, help="comma-separated rotation_hypotheses values to time")
-    parser.add_argument("--window-grids", default=None, help="comma-separated spectrum_window_grid values to time")
-    parser.add_argument("--views", default=None, help="comma-separated rotation_views values to time")
-    parser.add_argument("--radii", default=None, help="comma-separated inference_radii values to time")
+    parser.add_argument(
+        "--hypotheses", type=int_list, default=None, help="comma-separated rotation_hypotheses values to time"
+    )
+    parser.add_argument(
+        "--window-grids", type=int_list, default=None, help="comma-separated spectrum_window_grid values to time"
+    )
+    parser.add_argument("--views", type=int_list, default=None, help="comma-separated rotation_views values to time")
+    parser.add_argument("--radii", type=int_list, default=None, help="comma-separated inference_radii values to time")
     parser.add_argument("--bf16", action="store_true", help="autocast the U-Nets to bfloat16 (GPU)")
     parser.add_argument("--unet-dtype", choices=UNET_DTYPES, default=None, help="DPCN.unet_dtype of the timed models")
     args = parser.parse_args(argv)
@@ -120,9 +143,12 @@ def main(argv: list[str] | None = None) -> None:
         if values:  # one copy per value, same weights
             for label, model in list(models.items()):
                 del models[label]
-                for value in (int(v) for v in values.split(",")):
+                for value in values:
                     models[f"{label}, {short}={value}"] = variant = copy.deepcopy(model)
-                    setattr(variant, option, value)
+                    try:
+                        setattr(variant, option, value)  # DPCN's setters validate
+                    except ValueError as error:
+                        parser.error(str(error))
     if args.unet_dtype:
         for label in list(models):
             models[label].unet_dtype = args.unet_dtype

@@ -38,3 +38,18 @@ def test_prints_one_row_per_variant_and_the_classical_estimator(bench, capsys):
     assert int(rows[0][1]) > 0 and int(rows[2][1]) == 0
     params_end = lines[1].index("params") + len("params")  # the columns line up under the header
     assert all(line[:params_end].endswith(row[1]) for line, row in zip(lines[2:], rows, strict=True))
+
+
+@pytest.mark.parametrize(
+    "args,message",
+    [
+        (["--rounds", "0"], "argument --rounds: expected an integer >= 1, got '0'"),
+        (["--radii", "abc"], "argument --radii: expected comma-separated integers, got 'abc'"),
+        (["--radii", "1"], "inference_radii must be an integer >= 2 or None, got 1"),
+    ],
+)
+def test_bad_arguments_exit_with_one_line(bench, capsys, args, message):
+    with pytest.raises(SystemExit) as exit_info:
+        bench.main(["--presets", "tiny", "--size", "64", *args])
+    assert exit_info.value.code == 2
+    assert capsys.readouterr().err.strip().splitlines()[-1].endswith(message)
