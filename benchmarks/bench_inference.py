@@ -69,15 +69,14 @@ def timed_in_turn(
     for call in calls.values():
         for _ in range(warmup):
             call()
+    sync = torch.cuda.synchronize if device.startswith("cuda") else (lambda: None)  # GPU work is asynchronous
     times: dict[str, list[float]] = {label: [] for label in calls}
     for _ in range(rounds):
         for label, call in calls.items():
-            if device.startswith("cuda"):
-                torch.cuda.synchronize()
+            sync()
             start = time.perf_counter()
             call()
-            if device.startswith("cuda"):
-                torch.cuda.synchronize()
+            sync()
             times[label].append(time.perf_counter() - start)
     return {label: statistics.median(values) for label, values in times.items()}
 
