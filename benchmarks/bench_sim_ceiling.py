@@ -24,8 +24,9 @@ on the learned features of one image against the ideal maps of the other (shrunk
 model's stage-1 input, one copy per feature channel). Then it looks at the pairs stage 1
 misses with the model's own inference settings: is the true peak among the ``--peaks``
 strongest of the log-polar surface (a wrong choice) or not at all (features that do not
-correlate), how strong the peaks are, and how the accuracy depends on the scale and the
-translation.
+correlate), how strong the peaks are, and how the accuracy depends on the scale, the
+translation and the share of the template's boundaries that are visible (style-A contrast
+above ``--sides-contrast``).
 
 It swaps the private render functions of :mod:`dpcn.data.simulation` while it runs (the
 scene, pose and crop geometry stay the module's own).
@@ -146,12 +147,17 @@ def stage1_sides(model: DPCN, pairs: int, contrast: float) -> dict[str, float]:
 
 
 @torch.no_grad()
-def stage1_misses(model: DPCN, pairs: int, peaks: int = 5) -> dict[str, float]:
+def stage1_misses(model: DPCN, pairs: int, peaks: int = 5, contrast: float = 0.05) -> dict[str, float]:
     """Stage 1 with the model's window grid: where its misses (rotation mod 180 off by > 1
-    degree) come from. Scores are log-polar correlation peak heights."""
+    degree) come from. Scores are log-polar correlation peak heights; a template's visible
+    share is how much of its region boundaries has a style-A contrast above ``contrast``."""
     model.eval()
-    angle_errors, found, first, second, scales, shifts = [], [], [], [], [], []
-    for template, source, gt in batches("pixels", pairs):
+    angle_errors, found, first, second, scales, shifts, visible = [], [], [], [], [], [], []
+    streams = zip(
+        batches("pixels", pairs), batches("all-boundaries", pairs), batches("visible", pairs, contrast), strict=True
+    )
+    for (template, source, gt), (all_t, _, _), (visible_t, _, _) in streams:
+        visible.append(visible_t.flatten(1).sum(dim=1) / all_t.flatten(1).sum(dim=1).clamp_min(1e-6))
         rs, _ = model.rotation_scale(template, source, peaks, model.spectrum_window_grid)
         candidate_errors = wrap_angle(rs.candidate_angle - gt[:, 2:3], period=180.0).abs()
         true_peak = (candidate_errors <= 1.0) & ((rs.candidate_scale / gt[:, 3:4] - 1.0).abs() <= 0.05)
@@ -162,12 +168,21 @@ def stage1_misses(model: DPCN, pairs: int, peaks: int = 5) -> dict[str, float]:
         scales.append(gt[:, 3])
         shifts.append(gt[:, :2].norm(dim=1))
     error, found, first, second = torch.cat(angle_errors), torch.cat(found), torch.cat(first), torch.cat(second)
-    scale, shift = torch.cat(scales), torch.cat(shifts)
+    scale, shift, visible = torch.cat(scales), torch.cat(shifts), torch.cat(visible)
     hit = error <= 1.0
 
     def acc(mask: torch.Tensor) -> float:
         return 100.0 * float(hit[mask].float().mean()) if mask.any() else float("nan")
 
+    share = f"template boundaries > {contrast:g} visible"
+    by_visibility = {
+        f"within 1 deg, {share} {label} ({int(mask.sum())} pairs), %": acc(mask)
+        for label, mask in (
+            ("< 70 %", visible < 0.7),
+            ("70-90 %", (visible >= 0.7) & (visible < 0.9)),
+            (">= 90 %", visible >= 0.9),
+        )
+    }
     return {
         "rotation mod 180 within 1 deg, %": acc(torch.ones_like(hit)),
         "misses": float((~hit).sum()),
@@ -180,6 +195,9 @@ def stage1_misses(model: DPCN, pairs: int, peaks: int = 5) -> dict[str, float]:
         "within 1 deg, scale > 1.1, %": acc(scale > 1.1),
         "within 1 deg, |t| < 30 px, %": acc(shift < 30.0),
         "within 1 deg, |t| >= 30 px, %": acc(shift >= 30.0),
+        f"median share of {share}, hits": float(visible[hit].median()) if hit.any() else float("nan"),
+        f"median share of {share}, misses": float(visible[~hit].median()) if (~hit).any() else float("nan"),
+        **by_visibility,
     }
 
 
@@ -189,7 +207,12 @@ def main() -> None:
     parser.add_argument("--contrast", type=float, nargs="*", default=[0.02, 0.05, 0.1])
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--checkpoint", help="a trained DPCN checkpoint: which stage-1 extractor loses the pairs")
-    parser.add_argument("--sides-contrast", type=float, default=0.05, help="template threshold of the per-side check")
+    parser.add_argument(
+        "--sides-contrast",
+        type=float,
+        default=0.05,
+        help="template contrast threshold of the per-side check and of the misses by visible boundaries",
+    )
     parser.add_argument("--window-grid", type=int, default=None, help="stage-1 window grid (default: the checkpoint's)")
     parser.add_argument("--peaks", type=int, default=5, help="stage-1 peaks searched for the true one in the misses")
     args = parser.parse_args()
@@ -222,8 +245,8 @@ def main() -> None:
             print(f"  {name:<32}{acc:>6.1f}")
         grid = model.spectrum_window_grid
         print(f"\nstage-1 misses, learned features, {grid} x {grid} spectrum windows (the model's setting)")
-        for name, value in stage1_misses(model, args.pairs, args.peaks).items():
-            print(f"  {name:<56}{value:>8.3g}" if "score" in name else f"  {name:<56}{value:>8.1f}")
+        for name, value in stage1_misses(model, args.pairs, args.peaks, args.sides_contrast).items():
+            print(f"  {name:<72}{value:>8.3g}" if "score" in name or "share" in name else f"  {name:<72}{value:>8.1f}")
 
 
 if __name__ == "__main__":

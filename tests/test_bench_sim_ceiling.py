@@ -1,5 +1,7 @@
 """The sim-ceiling benchmark leans on private parts of dpcn.data.simulation: keep it honest."""
 
+import re
+
 import pytest
 import torch
 
@@ -54,3 +56,24 @@ def test_stage1_misses_counts_what_stage1_gets_wrong(ceiling):
     assert report["rotation mod 180 within 1 deg, %"] == pytest.approx(100.0 * (6 - misses) / 6)
     assert 0 <= report["misses with the true peak among the 3 strongest"] <= misses
     assert report["median peak score, misses"] > 0
+
+
+def test_stage1_misses_splits_the_pairs_by_visible_template_boundaries(ceiling):
+    torch.manual_seed(0)
+    model = DPCN(base_channels=2, depth=1, input_skip=True, rotation_scale_downsample=2)
+
+    def bins(report):
+        counts = {}
+        for key in report:
+            if match := re.search(r"visible (.+) \((\d+) pairs\)", key):
+                counts[match.group(1)] = int(match.group(2))
+        return counts
+
+    every = ceiling.stage1_misses(model, pairs=4, peaks=1, contrast=0.0)  # every boundary has some contrast
+    assert bins(every) == {"< 70 %": 0, "70-90 %": 0, ">= 90 %": 4}
+    none = ceiling.stage1_misses(model, pairs=4, peaks=1, contrast=1.0)  # grey levels differ by < 0.8
+    assert bins(none) == {"< 70 %": 4, "70-90 %": 0, ">= 90 %": 0}
+    medians = [v for k, v in every.items() if k.startswith("median share") and v == v]  # not NaN
+    assert medians and all(v == pytest.approx(1.0) for v in medians)
+    medians = [v for k, v in none.items() if k.startswith("median share") and v == v]
+    assert medians and all(v == 0.0 for v in medians)
