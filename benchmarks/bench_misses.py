@@ -16,8 +16,12 @@ how many of those the matcher did turn the wrong way).
 ``t_source``) by CKPT2's before evaluating: two phase-2 trainings compared on the same
 phase 1, which run-to-run spread of whole trainings cannot show.
 
+``--shared-with CKPT2`` also evaluates CKPT2 (e.g. another seed) on the same pairs and counts
+the rotation misses the two share: misses that are mostly the same pairs point at those pairs
+(the data), not at the draw of one training.
+
     python benchmarks/bench_misses.py --data s2d --checkpoint CKPT [--phase2-from CKPT2] \
-        [--stages validate,test] [-- rotation_views=4 ...]
+        [--shared-with CKPT2] [--stages validate,test] [-- rotation_views=4 ...]
 
 Everything after ``--`` is a Hydra override of the evaluation config (as for
 ``python -m dpcn test``).
@@ -83,6 +87,7 @@ def _swap_phase2(matcher, donor_path: str, target_path: str) -> None:
 def main(argv: list[str] | None = None) -> None:
     parser = evaluation_parser(__doc__, "data config (l2d, l2sat, s2d, s2sat, sim_...)")
     parser.add_argument("--phase2-from", help="take the phase-2 U-Nets from this checkpoint")
+    parser.add_argument("--shared-with", help="count the rotation misses shared with this checkpoint's")
     args = parser.parse_args(argv)
     stages = parse_stages(parser, args.stages)
     if args.phase2_from and not args.checkpoint:
@@ -95,6 +100,9 @@ def main(argv: list[str] | None = None) -> None:
         except CheckpointError as e:
             raise SystemExit(f"bench_misses: {e}") from None
         name += f", phase 2 of {Path(args.phase2_from).name}"
+    other = None
+    if args.shared_with:
+        other = evaluation_setup(args.data, args.shared_with, args.overrides, "bench_misses")[1]
     datamodule = instantiate(cfg.data)
     threshold = float(cfg.data.translation_threshold)
     print(f"{name} on {args.data}: rotation misses (error > 1 deg) by size; translation misses (> {threshold:g} px)")
@@ -128,6 +136,12 @@ def main(argv: list[str] | None = None) -> None:
             " ".join(f"{counts[c]:>14}" for c in columns) + " " + " ".join(f"{metrics[k]:>7.1f}" for _, k in accuracies)
         )
         print(f"{label:<18} {cells}")
+        if other is not None:
+            _, other_batches = matched_batches(other, datamodule, stage)
+            other_missed = torch.cat([e for _, _, e in other_batches])[:, 2] > 1.0
+            shared = int((other_missed & (errors[:, 2] > 1.0)).sum())
+            other_name = Path(args.shared_with).name
+            print(f"{'':<18} rotation misses shared with {other_name}: {shared} (it misses {int(other_missed.sum())})")
     sys.stdout.flush()
 
 

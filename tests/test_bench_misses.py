@@ -83,6 +83,36 @@ def test_checkpoint_rows_count_wrong_turns_at_the_truth(misses, tmp_path, capsys
     assert n == 16 and 0 <= of_them <= min(at_truth, half) and at_truth <= n
 
 
+def test_shared_misses_of_a_checkpoint_with_itself_are_all_of_them(misses, tmp_path, capsys):
+    root = make_dataset(tmp_path / "maps", n_scenes=3, seed=3, size=(720, 720), gap=0)
+    target = _checkpoint(tmp_path / "a.ckpt", 0)
+    overrides = [f"data.root={root}", "image_size=96", "data.dataset.translation=20", "data.test_length=16"]
+    misses.main(["--data", "s2d", "--stages", "test", "--shared-with", str(target), "--", *overrides])
+    classical = capsys.readouterr().out.splitlines()
+    rot_classical = int(classical[2][18:].split()[1])
+    misses.main(
+        ["--data", "s2d", "--checkpoint", str(target), "--shared-with", str(target), "--stages", "test"]
+        + ["--", *overrides]
+    )
+    lines = capsys.readouterr().out.splitlines()
+    rot = int(lines[2][18:].split()[1])
+    assert rot > 0 and lines[3].split() == [
+        "rotation",
+        "misses",
+        "shared",
+        "with",
+        "a.ckpt:",
+        str(rot),
+        "(it",
+        "misses",
+        f"{rot})",
+    ]
+    shared_with_classical = int(classical[3].split()[5])
+    assert classical[3].split()[-1] == f"{rot})" and shared_with_classical <= min(rot, rot_classical)
+    with pytest.raises(SystemExit, match="checkpoint not found: /nonexistent.ckpt"):
+        misses.main(["--checkpoint", str(target), "--shared-with", "/nonexistent.ckpt"])
+
+
 def test_phase2_swap_takes_only_the_translation_unets(misses, tmp_path):
     target = _checkpoint(tmp_path / "a.ckpt", 0)
     donor = _checkpoint(tmp_path / "b.ckpt", 1)
