@@ -118,6 +118,14 @@ def evaluate(mode: str, pairs: int, contrast: float = 0.0) -> dict[str, float]:
     return {column: metrics[key] for column, key in COLUMNS.items()}
 
 
+def pixels_and_ideal_batches(pairs: int, contrast: float):
+    """The test pairs side by side as pixels, every boundary, and the boundaries visible above
+    ``contrast``: ``((template, source, pose), (all_t, all_s, pose), (visible_t, visible_s, pose))``."""
+    return zip(
+        batches("pixels", pairs), batches("all-boundaries", pairs), batches("visible", pairs, contrast), strict=True
+    )
+
+
 @torch.no_grad()
 def stage1_sides(model: DPCN, pairs: int, contrast: float) -> dict[str, float]:
     """Stage-1 rotation (mod 180 degrees) Acc@1 of learned vs ideal features, per side."""
@@ -127,9 +135,7 @@ def stage1_sides(model: DPCN, pairs: int, contrast: float) -> dict[str, float]:
         return model.rotation_scale_input(image).repeat(1, channels, 1, 1)
 
     hits: dict[str, list[torch.Tensor]] = {}
-    streams = zip(
-        batches("pixels", pairs), batches("all-boundaries", pairs), batches("visible", pairs, contrast), strict=True
-    )
+    streams = pixels_and_ideal_batches(pairs, contrast)
     for (template, source, gt), (all_t, all_s, _), (visible_t, _, _) in streams:
         _, features = model.rotation_scale(template, source)
         learned_t, learned_s = features["rs_template"], features["rs_source"]
@@ -153,9 +159,7 @@ def stage1_misses(model: DPCN, pairs: int, peaks: int = 5, contrast: float = 0.0
     share is how much of its region boundaries has a style-A contrast above ``contrast``."""
     model.eval()
     angle_errors, found, first, second, scales, shifts, visible = [], [], [], [], [], [], []
-    streams = zip(
-        batches("pixels", pairs), batches("all-boundaries", pairs), batches("visible", pairs, contrast), strict=True
-    )
+    streams = pixels_and_ideal_batches(pairs, contrast)
     for (template, source, gt), (all_t, _, _), (visible_t, _, _) in streams:
         visible.append(visible_t.flatten(1).sum(dim=1) / all_t.flatten(1).sum(dim=1).clamp_min(1e-6))
         rs, _ = model.rotation_scale(template, source, peaks, model.spectrum_window_grid)

@@ -63,3 +63,21 @@ def load_benchmark(name: str):
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
+
+
+def write_checkpoint(path: Path, *overrides: str, seed: int = 0) -> Path:
+    """A checkpoint file as ``dpcn fit`` writes it, as far as ``load_matcher`` and
+    ``DPCNModule.load_from_checkpoint`` read one: the weights of the model the real configs
+    compose (with ``overrides``, initialised from ``seed``), its hyperparameters and Lightning's version."""
+    import lightning as L
+    from hydra.utils import instantiate
+
+    torch.manual_seed(seed)
+    module = instantiate(compose_config(*overrides).model, _convert_="all")
+    checkpoint = {
+        "state_dict": module.state_dict(),
+        "hyper_parameters": dict(module.hparams),
+        "pytorch-lightning_version": L.__version__,
+    }
+    torch.save(checkpoint, path)
+    return path

@@ -2,11 +2,10 @@
 
 import pytest
 import torch
-from hydra.utils import instantiate
 
 from dpcn.data.scene import make_dataset
 
-from .conftest import compose_config, load_benchmark
+from .conftest import load_benchmark, write_checkpoint
 
 
 @pytest.fixture(scope="module")
@@ -15,11 +14,8 @@ def misses():
 
 
 def _checkpoint(path, seed: int, *overrides: str):
-    """A file as `dpcn fit` writes it, as far as `load_matcher` reads one (weights + hparams)."""
-    torch.manual_seed(seed)
-    module = instantiate(compose_config("data=s2d", "image_size=96", *overrides).model, _convert_="all")
-    torch.save({"state_dict": module.state_dict(), "hyper_parameters": dict(module.hparams)}, path)
-    return path
+    """An s2d-sized checkpoint file (96 x 96) for the benchmark."""
+    return write_checkpoint(path, "data=s2d", "image_size=96", *overrides, seed=seed)
 
 
 def test_counts_split_the_rotation_misses_by_size(misses):

@@ -6,12 +6,11 @@ import re
 from pathlib import Path
 
 import torch
-from hydra.utils import instantiate
 
 from dpcn import Pose
 from dpcn.models.dpcn import DPCNOutput
 
-from .conftest import angle_error, compose_config, cv2_warp, photo
+from .conftest import angle_error, cv2_warp, photo, write_checkpoint
 
 README = Path(__file__).resolve().parents[1] / "README.md"
 
@@ -41,19 +40,7 @@ def test_classical_example_recovers_an_opencv_pose():
 
 
 def test_checkpoint_example_runs_on_a_checkpoint_file(tmp_path):
-    # A checkpoint as Lightning writes it, as far as load_from_checkpoint reads one.
-    import lightning as L
-
-    module = instantiate(compose_config("image_size=64").model, _convert_="all")
-    path = tmp_path / "last.ckpt"
-    torch.save(
-        {
-            "state_dict": module.state_dict(),
-            "hyper_parameters": dict(module.hparams),
-            "pytorch-lightning_version": L.__version__,
-        },
-        path,
-    )
+    path = write_checkpoint(tmp_path / "last.ckpt", "image_size=64")
     code = python_examples()[1]
     assert code.count('"outputs/fit/<time>/checkpoints/last.ckpt"') == 1
     template, other = photo("camera", (64, 64)), photo("astronaut", (64, 64))
