@@ -283,6 +283,22 @@ def test_dynamic_without_obstacles_is_heterogeneous() -> None:
     _assert_items_equal(SimulatedPairs("dynamic", **args)[1], SimulatedPairs("heterogeneous", **args)[1])
 
 
+@pytest.mark.parametrize("kind", ["heterogeneous", "dynamic"])
+@pytest.mark.parametrize("channels", [1, 3])
+def test_appearance_change_cross_fades_to_the_homogeneous_source(kind: str, channels: int) -> None:
+    args = dict(length=3, size=(80, 112), seed=5, channels=channels, noise=0.0, obstacles=0)
+    full = SimulatedPairs(kind, **args)
+    _assert_items_equal(SimulatedPairs(kind, appearance_change=1.0, **args)[2], full[2])  # the default
+    none = SimulatedPairs(kind, appearance_change=0.0, **args)[2]
+    homogeneous = SimulatedPairs("homogeneous", **args)[2]
+    assert torch.equal(none["pose"], homogeneous["pose"])
+    assert torch.allclose(none["template"], full[2]["template"])
+    assert torch.allclose(none["source"], homogeneous["source"], atol=1e-5)
+    assert not torch.allclose(none["source"], full[2]["source"], atol=0.1)
+    half = SimulatedPairs(kind, appearance_change=0.25, **args)[2]
+    assert torch.allclose(half["source"], 0.25 * full[2]["source"] + 0.75 * none["source"], atol=1e-5)
+
+
 def test_noise_zero_and_noise_level() -> None:
     clean = SimulatedPairs("homogeneous", length=1, size=96, noise=0.0)[0]
     noisy = SimulatedPairs("homogeneous", length=1, size=96, noise=0.05)[0]
@@ -352,6 +368,10 @@ def test_pose_angles_are_wrapped() -> None:
         ({"channels": 4}, "channels"),
         ({"noise": -0.1}, "noise"),
         ({"obstacles": -1}, "obstacles"),
+        ({"appearance_change": -0.1}, "appearance_change"),
+        ({"appearance_change": 1.5}, "appearance_change"),
+        ({"appearance_change": float("nan")}, "appearance_change"),
+        ({"appearance_change": "strong"}, "appearance_change"),
     ],
 )
 def test_invalid_arguments(kwargs: dict, name: str) -> None:
