@@ -185,6 +185,10 @@ def test_validate_and_test_print_the_paper_table(trained, tmp_path):
     ]
     out = dpcn("test", *SMALL, f"ckpt_path={ckpt}", *inference, f"hydra.run.dir={tmp_path / 'k'}", cwd=tmp_path)
     assert "acc_rot@1" in out.stdout and (tmp_path / "k" / "metrics_test.csv").is_file()
+    out = dpcn(
+        "test", *SMALL, f"ckpt_path={ckpt}", "inference_radii=trained", f"hydra.run.dir={tmp_path / 'r'}", cwd=tmp_path
+    )
+    assert "acc_rot@1" in out.stdout
     matcher = load_matcher(
         ckpt, rotation_hypotheses=2, spectrum_window_grid=5, rotation_views=8, unet_dtype="bfloat16", inference_radii=24
     )
@@ -192,12 +196,16 @@ def test_validate_and_test_print_the_paper_table(trained, tmp_path):
     assert (model.rotation_hypotheses, model.spectrum_window_grid, model.rotation_views) == (2, 5, 8)
     assert model.unet_dtype == "bfloat16" and load_matcher(ckpt).model.unet_dtype == "float32"
     assert model.inference_radii == 24 and load_matcher(ckpt).model.inference_radii == 128  # tiny's, stored
+    assert load_matcher(ckpt, inference_radii="trained").model.inference_radii is None  # n_radii
+    with pytest.raises(ValueError, match="inference_radii must be an integer >= 2 or 'trained', got 'all'"):
+        load_matcher(ckpt, inference_radii="all")
     for setting, message in [
         ("rotation_hypotheses=0", "rotation_hypotheses must be an integer >= 1, got 0"),
         ("spectrum_window_grid=2", "spectrum_window_grid must be an odd integer >= 1, got 2"),
         ("rotation_views=9", "rotation_views must be an integer from 1 to 8, got 9"),
         ("unet_dtype=float16", "unet_dtype must be one of float32, bfloat16, got 'float16'"),
         ("inference_radii=1", "inference_radii must be an integer >= 2 or None, got 1"),
+        ("inference_radii=all", "inference_radii must be an integer >= 2 or 'trained', got 'all'"),
     ]:
         run = tmp_path / setting.split("=")[0]
         bad = dpcn("test", *SMALL, f"ckpt_path={ckpt}", setting, f"hydra.run.dir={run}", cwd=tmp_path, check=False)

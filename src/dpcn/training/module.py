@@ -360,15 +360,18 @@ def load_matcher(
     spectrum_window_grid: int | None = None,
     rotation_views: int | None = None,
     unet_dtype: str | None = None,
-    inference_radii: int | None = None,
+    inference_radii: int | str | None = None,
 ) -> DPCNModule:
     """Load a DPCN checkpoint ready for ``.match(template, source) -> Pose`` (eval mode).
 
     ``rotation_hypotheses``, ``spectrum_window_grid``, ``rotation_views``, ``unet_dtype`` and
     ``inference_radii`` replace the checkpoint's inference settings of those names (see :class:`~dpcn.models.DPCN`);
-    ``None`` keeps them.
+    ``None`` keeps them. ``inference_radii="trained"`` infers with the radii the model was
+    trained with (``n_radii``), whatever the checkpoint stores.
     Raises :class:`CheckpointError` naming the problem for a missing, corrupt or foreign file.
     """
+    if isinstance(inference_radii, str) and inference_radii != "trained":
+        raise ValueError(f"inference_radii must be an integer >= 2 or 'trained', got {inference_radii!r}")
     path = Path(ckpt_path)
     checkpoint = _read_checkpoint(path, map_location)
     try:
@@ -385,7 +388,7 @@ def load_matcher(
     }
     for name, value in settings.items():
         if value is not None:
-            setattr(module.model, name, value)  # DPCN's setters validate
+            setattr(module.model, name, None if value == "trained" else value)  # DPCN's setters validate
     return module.to(map_location).eval()
 
 
