@@ -28,12 +28,14 @@ from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 
 from dpcn.cli import inference_settings
+from dpcn.data.aeroground import PAIRS
 from dpcn.metrics import pose_errors, summarize, thresholds_for
 from dpcn.pose import Pose
 from dpcn.training.module import CheckpointError, load_matcher
 
 CONF = Path(__file__).resolve().parents[1] / "conf"
 STAGES = {"validate": ("val", "held-out regions"), "test": ("test", "held-out scene")}
+OTHER_LABELS = {"validate": "validation pairs", "test": "test pairs"}  # data that is not a map pair
 
 
 def evaluation_parser(doc: str, data_help: str) -> argparse.ArgumentParser:
@@ -76,6 +78,8 @@ def matched_batches(matcher, datamodule, stage: str) -> tuple[str, Iterator[tupl
     pairs, ``(batch, pose, errors)``: the matcher's pose and its ``(B, 4)`` absolute errors
     (``dpcn.metrics.pose_errors``). The benchmarks' shared evaluation loop."""
     split, label = STAGES[stage]
+    if getattr(datamodule, "name", None) not in PAIRS:  # regions and scenes are the map pairs' splits
+        label = OTHER_LABELS[stage]
     datamodule.setup(stage)
     loader = datamodule.val_dataloader() if split == "val" else datamodule.test_dataloader()
 

@@ -133,3 +133,11 @@ def test_bad_arguments_are_refused(misses, tmp_path):
     wider = _checkpoint(tmp_path / "wide.ckpt", 0, "model.net.base_channels=8")
     with pytest.raises(SystemExit, match="phase 2 of .*wide.ckpt does not fit"):
         misses.main(["--checkpoint", str(target), "--phase2-from", str(wider)])
+
+
+def test_simulated_pairs_are_not_labelled_as_map_regions(misses, capsys):
+    overrides = ["image_size=64", "data.val_length=4", "data.test_length=4", "data.num_workers=0"]
+    misses.main(["--data", "sim_heterogeneous", "--stages", "validate,test", "--", *overrides])
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[2].startswith("validation pairs") and lines[3].startswith("test pairs")
+    assert not any("held-out" in line for line in lines)
