@@ -372,6 +372,7 @@ def test_pose_angles_are_wrapped() -> None:
         ({"appearance_change": 1.5}, "appearance_change"),
         ({"appearance_change": float("nan")}, "appearance_change"),
         ({"appearance_change": "strong"}, "appearance_change"),
+        ({"appearance_change": True}, "appearance_change"),
     ],
 )
 def test_invalid_arguments(kwargs: dict, name: str) -> None:

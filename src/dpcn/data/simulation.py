@@ -661,10 +661,10 @@ class SimulatedPairs(Dataset):
         if not isinstance(obstacles, (int, np.integer)) or isinstance(obstacles, bool) or obstacles < 0:
             raise ValueError(f"obstacles must be an integer >= 0, got {obstacles!r}")
         try:
-            appearance_change = float(appearance_change)
+            change = float(appearance_change)
         except (TypeError, ValueError):
-            raise ValueError(f"appearance_change must be a number in [0, 1], got {appearance_change!r}") from None
-        if not 0.0 <= appearance_change <= 1.0:
+            change = math.nan
+        if isinstance(appearance_change, bool) or not 0.0 <= change <= 1.0:
             raise ValueError(f"appearance_change must be a number in [0, 1], got {appearance_change!r}")
 
         self.kind = kind
@@ -677,7 +677,7 @@ class SimulatedPairs(Dataset):
         self.channels = int(channels)
         self.noise = noise
         self.obstacles = int(obstacles)
-        self.appearance_change = appearance_change
+        self.appearance_change = change
         self.epoch = 0
 
         # Canvas: the output frame plus a margin covering every pose of the ranges (any angle).
