@@ -384,11 +384,13 @@ def load_matcher(
         "spectrum_window_grid": spectrum_window_grid,
         "rotation_views": rotation_views,
         "unet_dtype": unet_dtype,
-        "inference_radii": inference_radii,
+        "inference_radii": None if inference_radii == "trained" else inference_radii,
     }
     for name, value in settings.items():
         if value is not None:
-            setattr(module.model, name, None if value == "trained" else value)  # DPCN's setters validate
+            setattr(module.model, name, value)  # DPCN's setters validate
+    if inference_radii == "trained":
+        module.model.inference_radii = None  # n_radii
     return module.to(map_location).eval()
 
 
