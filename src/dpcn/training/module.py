@@ -384,13 +384,11 @@ def load_matcher(
         "spectrum_window_grid": spectrum_window_grid,
         "rotation_views": rotation_views,
         "unet_dtype": unet_dtype,
-        "inference_radii": None if inference_radii == "trained" else inference_radii,
+        "inference_radii": inference_radii,
     }
     for name, value in settings.items():
-        if value is not None:
-            setattr(module.model, name, value)  # DPCN's setters validate
-    if inference_radii == "trained":
-        module.model.inference_radii = None  # n_radii
+        if value is not None:  # DPCN's setters validate; inference_radii None is the trained n_radii
+            setattr(module.model, name, None if (name, value) == ("inference_radii", "trained") else value)
     return module.to(map_location).eval()
 
 
