@@ -107,6 +107,15 @@ def test_training_length_per_data_config(args, epochs):
     assert compose_config(*args).trainer.max_epochs == epochs
 
 
+@pytest.mark.parametrize("data", ["sim_heterogeneous", "sim_dynamic"])
+def test_paper_difficulty_experiment_sets_the_appearance_change(data):
+    assert compose_config(f"data={data}").data.dataset.appearance_change == 1.0  # the default: full change
+    dm = instantiate(compose_config(f"data={data}", "experiment=paper_difficulty").data)
+    dm.setup("test")
+    assert dm.datasets["test"].appearance_change == 0.3
+    assert dm.datasets["test"].kind == data.removeprefix("sim_")
+
+
 @pytest.mark.parametrize(
     "args,fraction",
     [

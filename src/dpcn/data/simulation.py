@@ -88,6 +88,14 @@ Obstacles (dynamic)
 per image: exactly ``obstacles`` of them, centre uniform in the image; 60% cars (rotated
 rectangles 0.05-0.1 L long, 0.4-0.55 as wide), 40% people (discs of radius 0.012-0.025 L);
 flat dark U(0, 0.2) or bright U(0.8, 1) fill (per channel) with a 1-px border of 1 - fill.
+Their sharp, high-contrast edges weigh heavily in a magnitude spectrum: on the dynamic test
+pairs at ``appearance_change=0.3`` the classical estimator finds 49.6 / 50.4 / 37.6 / 91.2 %
+(x@5px / y@5px / rot@1° / scale@0.2) with one obstacle per image and 31.6 / 31.6 / 17.2 / 91.6 %
+with four (``python -m dpcn test -m model=classical data=sim_dynamic
+data.dataset.appearance_change=0.3 data.dataset.obstacles=1,2,3,4``), against 56.8 / 59.0 /
+46.8 / 92.4 % with none. The paper's obstacles cost its classical estimator nothing (its
+dynamic row averages 64.1 %, its heterogeneous row 63.9 %), so these dynamic pairs are harder
+than the paper's at every ``appearance_change``.
 
 Noise
 -----
