@@ -11,14 +11,15 @@ accuracy within the paper's thresholds, the strict accuracies, and the time per 
     python benchmarks/bench_training.py --data l2sat --stages validate,test   # 5 epochs: the data config's default
 
 Everything after ``--`` is passed to ``fit`` as Hydra overrides; the evaluations repeat those of
-the data (``data.*``: e.g. ``data.root=`` or ``data.builtin_scenes=``), ``image_size``,
-``channels`` and ``seed``. Outputs go to ``--out``.
+the data (``data.*``: e.g. ``data.root=`` or ``data.builtin_scenes=``, also those an
+``experiment=`` sets), ``image_size``, ``channels`` and ``seed``. Outputs go to ``--out``.
 """
 
 from __future__ import annotations
 
 import argparse
 import csv
+import json
 import os
 import subprocess
 import sys
@@ -26,6 +27,9 @@ import time
 from datetime import datetime
 from pathlib import Path
 
+from omegaconf import OmegaConf
+
+CONF = Path(__file__).resolve().parents[1] / "conf"
 COLUMNS = [  # (metrics key, table header); {t} is the data set's translation threshold
     ("mse_x", "E_x"), ("acc_x@{t}", "Acc_x@{t}"), ("mse_y", "E_y"), ("acc_y@{t}", "Acc_y@{t}"),
     ("mse_rot", "E_rot"), ("acc_rot@1", "Acc_rot@1"), ("mse_scale", "E_scale"), ("acc_scale@0.2", "Acc_s@0.2"),
@@ -50,14 +54,43 @@ def read_metrics(path: Path) -> dict[str, float]:
     return {k: float(v) for k, v in row.items() if k != "name"}
 
 
+def experiment_overrides(name: str) -> list[str]:
+    """``experiment=name`` spelled out as the ``key=value`` overrides its config file makes."""
+    path = CONF / "experiment" / f"{name}.yaml"
+    if not path.is_file():
+        return []  # fit has already stopped on it, with Hydra's message
+    flat: list[str] = []
+
+    def walk(node: dict, prefix: str) -> None:
+        for key, value in node.items():
+            if isinstance(value, dict):
+                walk(value, f"{prefix}{key}.")
+            else:
+                flat.append(f"{prefix}{key}={json.dumps(value)}")
+
+    walk(OmegaConf.to_container(OmegaConf.load(path)), "")
+    return flat
+
+
 def evaluation_overrides(overrides: list[str]) -> list[str]:
     """The fit overrides that the evaluations repeat: the image size and channels (the model is
     built for them), the seed, and every ``data.`` key (where the maps are, how many built-in
     scenes, pose ranges, ``min_valid``...: the pairs evaluated must come from the data trained
-    on). Keys of the training alone (``data.epoch_size``, ``data.batch_size``...) are
-    harmless there."""
+    on), also those an ``experiment=`` sets (the command line's own win, as in fit). Keys of the
+    training alone (``data.epoch_size``, ``data.batch_size``...) are harmless there."""
+
+    def key(override: str) -> str:
+        return override.split("=")[0].lstrip("+~")
+
+    given = {key(o) for o in overrides}
+    expanded: list[str] = []
+    for o in overrides:
+        if key(o) == "experiment":
+            expanded += [e for e in experiment_overrides(o.split("=", 1)[1]) if key(e) not in given]
+        else:
+            expanded.append(o)
     keys = ("image_size", "channels", "seed")
-    return [o for o in overrides if o.split("=")[0].lstrip("+~") in keys or o.lstrip("+~").startswith("data.")]
+    return [o for o in expanded if key(o) in keys or key(o).startswith("data.")]
 
 
 def main() -> None:
