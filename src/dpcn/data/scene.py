@@ -34,7 +34,16 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-__all__ = ["generate_scene", "write_scene", "make_dataset", "MODALITIES", "MASKED_MODALITIES"]
+__all__ = [
+    "generate_scene",
+    "scene_truth",
+    "scene_seed",
+    "scene_index",
+    "write_scene",
+    "make_dataset",
+    "MODALITIES",
+    "MASKED_MODALITIES",
+]
 
 MODALITIES = ("lidar", "stereo", "drone", "satellite")
 MASKED_MODALITIES = ("lidar", "stereo")
@@ -658,6 +667,22 @@ def generate_scene(seed: int = 0, size: tuple[int, int] = (1024, 1024)) -> dict[
     }
 
 
+def scene_truth(seed: int = 0, size: tuple[int, int] = (1024, 1024)) -> dict[str, np.ndarray]:
+    """The world that :func:`generate_scene` (same ``seed`` and ``size``) renders: what a
+    perfect feature extractor could recover from each modality, for diagnostics.
+
+    Returns:
+        ``{"labels": (H, W) uint8, "height": (H, W) float32}`` with the parked cars the
+        ground robot and the drone see, and ``"labels_satellite"``, ``"height_satellite"``
+        with the satellite's (a few missing, moved or added). Labels are the classes
+        ``SOIL, GRASS, SIDEWALK, ROAD, MARK, BUILDING, TREE, CAR = 0..7``; heights in metres.
+    """
+    world = _build_world(seed, size)
+    labels, height, _, _ = _with_cars(world, world.cars)
+    labels_sat, height_sat, _, _ = _with_cars(world, world.cars_satellite)
+    return {"labels": labels, "height": height, "labels_satellite": labels_sat, "height_satellite": height_sat}
+
+
 # --------------------------------------------------------------------------------------
 # writing
 
@@ -709,6 +734,22 @@ def _scene_name(i: int) -> str:
         i, r = divmod(i - 1, 26)
         letters = chr(ord("a") + r) + letters
     return f"scene_{letters}"
+
+
+def scene_index(name: str) -> int:
+    """The index ``i`` of :func:`make_dataset`'s scene ``name`` (``scene_a`` -> 0, ``scene_af`` -> 31)."""
+    letters = name.removeprefix("scene_")
+    if not name.startswith("scene_") or not letters or not all("a" <= c <= "z" for c in letters):
+        raise ValueError(f"{name!r} is not a scene name of make_dataset (scene_a, scene_b, ...)")
+    i = 0
+    for c in letters:
+        i = 26 * i + ord(c) - ord("a") + 1
+    return i - 1
+
+
+def scene_seed(dataset_seed: int, index: int) -> int:
+    """The :func:`generate_scene` seed of scene ``index`` of ``make_dataset(seed=dataset_seed)``."""
+    return int(np.random.SeedSequence([int(dataset_seed) & 0xFFFFFFFF, int(index)]).generate_state(1)[0])
 
 
 _README = """\
@@ -764,9 +805,8 @@ def make_dataset(
     regions = {"train": [[0, 0, split, h]], "val": [[split + gap, 0, w, h]], "test": [[split + gap, 0, w, h]]}
     names = []
     for i in range(n_scenes):
-        scene_seed = int(np.random.SeedSequence([int(seed) & 0xFFFFFFFF, i]).generate_state(1)[0])
         name = _scene_name(i)
-        write_scene(out, name, generate_scene(scene_seed, (h, w)), regions)
+        write_scene(out, name, generate_scene(scene_seed(seed, i), (h, w)), regions)
         names.append(name)
     (out / "README.txt").write_text(
         _README.format(seed=seed, split=split, gap=gap, scenes=", ".join(names), size=(h, w))
