@@ -15,9 +15,12 @@ spectrum / log-polar / correlation pipeline DPCN trains through):
     no-data shapes stay; source: the same heights everywhere (with the aerial image's cars).
     What an extractor that recovers elevation perfectly on both sides gives.
 ``boundaries``
-    every class boundary of the world's label map (roads, marks, sidewalks, buildings,
-    trees, cars), where the robot observed (template) and everywhere (source): the
-    geometry the two images share, without the no-data shapes.
+    every class boundary of the world's label map (roads, marks, sidewalks, grass, soil,
+    buildings, trees, cars), where the robot observed (template) and everywhere (source):
+    the geometry the two images share, without the no-data shapes. A LiDAR intensity map
+    shows these boundaries (reflectance differs by class); an elevation map shows only:
+``objects``
+    the outlines of what stands above the ground (buildings, trees, cars), as ``boundaries``.
 
 With ``--checkpoint`` it also asks which of a trained model's two stage-1 extractors loses
 the pairs: stage 1 (rotation modulo 180 degrees, one centred spectrum window) on the learned
@@ -48,14 +51,24 @@ from hydra.utils import instantiate
 
 from dpcn.data.aeroground import IMAGE_EXTENSIONS, PAIRS, read_image
 from dpcn.data.maps import builtin_root
-from dpcn.data.scene import STEREO_GROUND, STEREO_MAX_M, generate_scene, scene_index, scene_seed, scene_truth
+from dpcn.data.scene import (
+    BUILDING,
+    CAR,
+    STEREO_GROUND,
+    STEREO_MAX_M,
+    TREE,
+    generate_scene,
+    scene_index,
+    scene_seed,
+    scene_truth,
+)
 from dpcn.metrics import summarize, thresholds_for
 from dpcn.pose import wrap_angle
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_coverage import evaluation_parser, evaluation_setup, matched_batches, parse_stages  # noqa: E402  (the same evaluation set-up)
 
-MODES = ("elevation", "boundaries")
+MODES = ("elevation", "boundaries", "objects")
 _KERNEL = np.ones((3, 3), np.uint8)
 
 
@@ -78,6 +91,9 @@ def ideal_maps(mode: str, truth: dict[str, np.ndarray], source_modality: str) ->
         return elevation_grey(truth["height"]), elevation_grey(truth["height" + suffix])
     if mode == "boundaries":
         return boundaries(truth["labels"]), boundaries(truth["labels" + suffix])
+    if mode == "objects":
+        raised = [np.isin(truth[key], (BUILDING, TREE, CAR)).astype(np.uint8) for key in ("labels", "labels" + suffix)]
+        return boundaries(raised[0]), boundaries(raised[1])
     raise ValueError(f"unknown mode {mode!r}; modes: {', '.join(MODES)}")
 
 

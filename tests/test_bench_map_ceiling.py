@@ -39,7 +39,7 @@ def test_scene_truth_is_what_the_scene_renders(maps):
 
 def test_ideal_pairs_are_the_real_pairs_and_the_boundaries_find_them(ceiling, maps, tmp_path, capsys):
     roots = ceiling.write_ideal_roots(maps, "s2d", tmp_path, dataset_seed=3)
-    assert sorted(roots) == ["boundaries", "elevation"]
+    assert sorted(roots) == ["boundaries", "elevation", "objects"]
     real = ceiling._loader("s2d", [f"data.root={maps}", *SMALL], "test")
     ideal = ceiling._loader("s2d", [f"data.root={roots['boundaries']}", *SMALL], "test")
     for a, b in zip(real, ideal, strict=True):
@@ -69,6 +69,8 @@ def test_stage1_sides_reports_every_pairing(ceiling, maps, tmp_path):
         "elevation / learned",
         "learned / boundaries",
         "boundaries / learned",
+        "learned / objects",
+        "objects / learned",
     ]
     assert all(0.0 <= v <= 100.0 for v in report.values())
 
