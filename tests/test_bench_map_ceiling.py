@@ -37,6 +37,20 @@ def test_scene_truth_is_what_the_scene_renders(maps):
     assert float(np.corrcoef(stereo[valid], truth["height"][valid])[0, 1]) > 0.8
 
 
+def test_objects_are_the_raised_part_of_the_boundaries(ceiling):
+    truth = scene_truth(scene_seed(3, 0), (720, 720))
+    every, _ = ceiling.ideal_maps("boundaries", truth, "drone")
+    objects, _ = ceiling.ideal_maps("objects", truth, "drone")
+    assert objects.any() and not (objects & ~every).any()  # an outline of something raised is a class boundary
+    assert objects.sum() < every.sum()  # the flat classes' boundaries are not among them
+    elevation, _ = ceiling.ideal_maps("elevation", truth, "drone")
+    assert elevation[truth["height"] == 0].max() == STEREO_GROUND
+    _, satellite = ceiling.ideal_maps("objects", truth, "satellite")
+    assert not np.array_equal(objects, satellite)  # the satellite's own cars
+    with pytest.raises(ValueError, match="unknown mode 'texture'"):
+        ceiling.ideal_maps("texture", truth, "drone")
+
+
 def test_ideal_pairs_are_the_real_pairs_and_the_boundaries_find_them(ceiling, maps, tmp_path, capsys):
     roots = ceiling.write_ideal_roots(maps, "s2d", tmp_path, dataset_seed=3)
     assert sorted(roots) == ["boundaries", "elevation", "objects"]
@@ -52,7 +66,7 @@ def test_ideal_pairs_are_the_real_pairs_and_the_boundaries_find_them(ceiling, ma
     lines = capsys.readouterr().out.splitlines()
     rows = {line[:30].strip(): [float(v) for v in line[30:].split()] for line in lines if line.startswith("held-out")}
     pixels, boundaries = rows["held-out scene, pixels"], rows["held-out scene, boundaries"]
-    assert rows["held-out scene, elevation"]
+    assert rows["held-out scene, elevation"] and rows["held-out scene, objects"]
     assert boundaries[2] >= pixels[2] + 40  # rot@1: the shared geometry finds what the pixels do not
 
 
