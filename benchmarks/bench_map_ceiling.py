@@ -201,6 +201,8 @@ def main(argv: list[str] | None = None) -> None:
         parser.error(f"--data takes a map pair ({', '.join(PAIRS)}), got {args.data!r}")
     cfg, matcher, _ = evaluation_setup(args.data, args.checkpoint, args.overrides, "bench_map_ceiling")
     root = Path(cfg.data.root) if cfg.data.root else builtin_root(n_scenes=int(cfg.data.builtin_scenes))
+    if not root.is_dir():
+        parser.error(f"data.root {root} does not exist or is not a folder")
     t = f"{float(cfg.data.translation_threshold):g}"
     columns = {
         f"x@{t}": f"acc_x@{t}", f"y@{t}": f"acc_y@{t}", "rot@1": "acc_rot@1", "s@0.2": "acc_scale@0.2",

@@ -89,7 +89,7 @@ def test_stage1_sides_reports_every_pairing(ceiling, maps, tmp_path):
     assert all(0.0 <= v <= 100.0 for v in report.values())
 
 
-def test_bad_input_is_refused(ceiling, maps, tmp_path):
+def test_bad_input_is_refused(ceiling, maps, tmp_path, capsys):
     with pytest.raises(SystemExit, match=r"scene_a/stereo.png is not scene scene_a of make_dataset\(seed=4\)"):
         ceiling.write_ideal_roots(maps, "s2d", tmp_path / "a", dataset_seed=4)
     odd = tmp_path / "odd" / "meadow"
@@ -102,3 +102,7 @@ def test_bad_input_is_refused(ceiling, maps, tmp_path):
         ceiling.main(["--data", "sim_heterogeneous"])
     with pytest.raises(SystemExit, match="checkpoint not found: /nonexistent.ckpt"):
         ceiling.main(["--checkpoint", "/nonexistent.ckpt"])
+    capsys.readouterr()
+    with pytest.raises(SystemExit):
+        ceiling.main(["--", f"data.root={tmp_path / 'missing'}"])
+    assert f"data.root {tmp_path / 'missing'} does not exist" in capsys.readouterr().err
