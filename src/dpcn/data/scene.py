@@ -20,7 +20,8 @@ co-registered at the same pixel grid (0.1 m/pixel nominal), as
   range and in line of sight; the LiDAR map is still speckled inside it), 0 = no data.
 
 :func:`write_scene` and :func:`make_dataset` write scenes in the folder layout that
-:mod:`dpcn.data.aeroground` reads.
+:mod:`dpcn.data.aeroground` reads. :func:`scene_truth` gives the world a scene renders (class
+labels and heights), for diagnostics such as ``benchmarks/bench_map_ceiling.py``.
 """
 
 from __future__ import annotations
