@@ -49,7 +49,7 @@ import numpy as np
 import torch
 from hydra.utils import instantiate
 
-from dpcn.data.aeroground import IMAGE_EXTENSIONS, PAIRS, read_image
+from dpcn.data.aeroground import PAIRS, DataError, _find_image, read_image
 from dpcn.data.maps import builtin_root
 from dpcn.data.scene import (
     BUILDING,
@@ -98,7 +98,8 @@ def ideal_maps(mode: str, truth: dict[str, np.ndarray], source_modality: str) ->
 
 
 def _modality_file(folder: Path, stem: str) -> Path | None:
-    found = [p for p in folder.iterdir() if p.stem == stem and p.suffix.lower() in IMAGE_EXTENSIONS]
+    """The raster ``folder/stem.<ext>`` as the map reader finds it, or ``None``."""
+    found = _find_image(folder, stem)
     return found[0] if found else None
 
 
@@ -173,6 +174,7 @@ def stage1_sides(model, data: str, overrides: list[str], roots: dict[str, Path],
     hits: dict[str, list[torch.Tensor]] = {}
     for batch, *ideal in zip(*streams, strict=True):
         gt = batch["pose"]
+        model.check_inputs(batch["template"], batch["source"])  # a size the model was not built for: its own error
         _, features = model.rotation_scale(batch["template"], batch["source"])
         learned_t, learned_s = features["rs_template"], features["rs_source"]
         channels = learned_t.shape[1]
@@ -209,22 +211,29 @@ def main(argv: list[str] | None = None) -> None:
         "x@1": "acc_x@1", "y@1": "acc_y@1", "rot@0.5": "acc_rot@0.5", "s@0.02": "acc_scale@0.02",
     }  # fmt: skip
     labels = {"validate": "held-out regions", "test": "held-out scene"}
-    with tempfile.TemporaryDirectory(prefix="dpcn-ceiling-") as tmp:
-        started = time.perf_counter()
-        roots = write_ideal_roots(root, args.data, Path(tmp), args.dataset_seed)
-        print(f"{args.data}: ideal maps of {root} written in {time.perf_counter() - started:.0f} s")
-        print(f"classical estimator, Acc in %\n{'pairs, features':<30}" + "".join(f"{c:>8}" for c in columns))
-        for stage in stages:
-            for mode, mode_root in [("pixels", None), *roots.items()]:
-                acc = classical_accuracy(args.data, _with_root(args.overrides, mode_root), stage, columns)
-                print(f"{labels[stage] + ', ' + mode:<30}" + "".join(f"{v:>8.1f}" for v in acc.values()), flush=True)
-        if args.checkpoint:
-            model = matcher.model
-            print(f"\nstage 1 of {args.checkpoint}: rotation (mod 180 degrees) within 1 degree, %, centred window")
-            print("template features / source features")
+    try:
+        if args.checkpoint:  # before the long part: pairs of a size the model was not built for
+            blank = torch.zeros(1, int(cfg.channels), int(cfg.image_size), int(cfg.image_size))
+            matcher.model.check_inputs(blank, blank)
+        with tempfile.TemporaryDirectory(prefix="dpcn-ceiling-") as tmp:
+            started = time.perf_counter()
+            roots = write_ideal_roots(root, args.data, Path(tmp), args.dataset_seed)
+            print(f"{args.data}: ideal maps of {root} written in {time.perf_counter() - started:.0f} s")
+            print(f"classical estimator, Acc in %\n{'pairs, features':<30}" + "".join(f"{c:>8}" for c in columns))
             for stage in stages:
-                for name, acc in stage1_sides(model, args.data, args.overrides, roots, stage).items():
-                    print(f"  {labels[stage] + ', ' + name:<46}{acc:>6.1f}", flush=True)
+                for mode, mode_root in [("pixels", None), *roots.items()]:
+                    acc = classical_accuracy(args.data, _with_root(args.overrides, mode_root), stage, columns)
+                    row = "".join(f"{v:>8.1f}" for v in acc.values())
+                    print(f"{labels[stage] + ', ' + mode:<30}{row}", flush=True)
+            if args.checkpoint:
+                model = matcher.model
+                print(f"\nstage 1 of {args.checkpoint}: rotation (mod 180 degrees) within 1 degree, %, centred window")
+                print("template features / source features")
+                for stage in stages:
+                    for name, acc in stage1_sides(model, args.data, args.overrides, roots, stage).items():
+                        print(f"  {labels[stage] + ', ' + name:<46}{acc:>6.1f}", flush=True)
+    except (DataError, ValueError) as error:  # bad data or sizes: one line, as the CLI's
+        raise SystemExit(f"bench_map_ceiling: {error}") from None
     sys.stdout.flush()
 
 

@@ -102,6 +102,11 @@ def test_bad_input_is_refused(ceiling, maps, tmp_path, capsys):
         ceiling.main(["--data", "sim_heterogeneous"])
     with pytest.raises(SystemExit, match="checkpoint not found: /nonexistent.ckpt"):
         ceiling.main(["--checkpoint", "/nonexistent.ckpt"])
+    with pytest.raises(SystemExit, match="bench_map_ceiling: scene 'scene_a': val region .* too small"):
+        ceiling.main(["--dataset-seed", "3", "--", f"data.root={maps}"])  # 256 px crops in 720 px scenes
+    checkpoint = write_checkpoint(tmp_path / "s2d.ckpt", "data=s2d", "image_size=96")
+    with pytest.raises(SystemExit, match="bench_map_ceiling: this model was built for 96x96 images, got 128x128"):
+        ceiling.main(["--checkpoint", str(checkpoint), "--", f"data.root={maps}", "image_size=128"])
     capsys.readouterr()
     with pytest.raises(SystemExit):
         ceiling.main(["--", f"data.root={tmp_path / 'missing'}"])
