@@ -18,9 +18,12 @@ spectrum / log-polar / correlation pipeline DPCN trains through):
     every class boundary of the world's label map (roads, marks, sidewalks, grass, soil,
     buildings, trees, cars), where the robot observed (template) and everywhere (source):
     the geometry the two images share, without the no-data shapes. A LiDAR intensity map
-    shows these boundaries (reflectance differs by class); an elevation map shows only:
+    shows these boundaries (reflectance differs by class); an elevation map only those of:
 ``objects``
-    the outlines of what stands above the ground (buildings, trees, cars), as ``boundaries``.
+    what stands metres above the ground (buildings, trees, cars), outlined as ``boundaries``;
+``raised``
+    and the sidewalks too: the outline of everything at least a kerb (0.15 m) above the
+    road, every height step of the world.
 
 With ``--checkpoint`` it also asks which of a trained model's two stage-1 extractors loses
 the pairs: stage 1 (rotation modulo 180 degrees, one centred spectrum window) on the learned
@@ -54,6 +57,7 @@ from dpcn.data.maps import builtin_root
 from dpcn.data.scene import (
     BUILDING,
     CAR,
+    SIDEWALK,
     STEREO_GROUND,
     STEREO_MAX_M,
     TREE,
@@ -68,7 +72,7 @@ from dpcn.pose import wrap_angle
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_coverage import evaluation_parser, evaluation_setup, matched_batches, parse_stages  # noqa: E402  (the same evaluation set-up)
 
-MODES = ("elevation", "boundaries", "objects")
+MODES = ("elevation", "boundaries", "objects", "raised")
 _KERNEL = np.ones((3, 3), np.uint8)
 
 
@@ -91,9 +95,10 @@ def ideal_maps(mode: str, truth: dict[str, np.ndarray], source_modality: str) ->
         return elevation_grey(truth["height"]), elevation_grey(truth["height" + suffix])
     if mode == "boundaries":
         return boundaries(truth["labels"]), boundaries(truth["labels" + suffix])
-    if mode == "objects":
-        raised = [np.isin(truth[key], (BUILDING, TREE, CAR)).astype(np.uint8) for key in ("labels", "labels" + suffix)]
-        return boundaries(raised[0]), boundaries(raised[1])
+    if mode in ("objects", "raised"):
+        classes = (BUILDING, TREE, CAR) + ((SIDEWALK,) if mode == "raised" else ())
+        above = [np.isin(truth[key], classes).astype(np.uint8) for key in ("labels", "labels" + suffix)]
+        return boundaries(above[0]), boundaries(above[1])
     raise ValueError(f"unknown mode {mode!r}; modes: {', '.join(MODES)}")
 
 

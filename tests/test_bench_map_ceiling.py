@@ -43,6 +43,12 @@ def test_objects_are_the_raised_part_of_the_boundaries(ceiling):
     objects, _ = ceiling.ideal_maps("objects", truth, "drone")
     assert objects.any() and not (objects & ~every).any()  # an outline of something raised is a class boundary
     assert objects.sum() < every.sum()  # the flat classes' boundaries are not among them
+    raised, _ = ceiling.ideal_maps("raised", truth, "drone")
+    assert not (raised & ~every).any()  # the raised outlines are class boundaries
+    # and hold nearly every object outline (not those against a sidewalk, raised too)
+    assert (objects & raised).astype(bool).sum() > 0.9 * objects.astype(bool).sum()
+    kerbs = raised & ~objects
+    assert kerbs.any() and (truth["labels"][kerbs > 0] == 2).mean() > 0.4  # mostly the sidewalks' own edges
     elevation, _ = ceiling.ideal_maps("elevation", truth, "drone")
     assert elevation[truth["height"] == 0].max() == STEREO_GROUND
     _, satellite = ceiling.ideal_maps("objects", truth, "satellite")
@@ -53,7 +59,7 @@ def test_objects_are_the_raised_part_of_the_boundaries(ceiling):
 
 def test_ideal_pairs_are_the_real_pairs_and_the_boundaries_find_them(ceiling, maps, tmp_path, capsys):
     roots = ceiling.write_ideal_roots(maps, "s2d", tmp_path, dataset_seed=3)
-    assert sorted(roots) == ["boundaries", "elevation", "objects"]
+    assert sorted(roots) == ["boundaries", "elevation", "objects", "raised"]
     real = ceiling._loader("s2d", [f"data.root={maps}", *SMALL], "test")
     ideal = ceiling._loader("s2d", [f"data.root={roots['boundaries']}", *SMALL], "test")
     for a, b in zip(real, ideal, strict=True):
@@ -85,6 +91,8 @@ def test_stage1_sides_reports_every_pairing(ceiling, maps, tmp_path):
         "boundaries / learned",
         "learned / objects",
         "objects / learned",
+        "learned / raised",
+        "raised / learned",
     ]
     assert all(0.0 <= v <= 100.0 for v in report.values())
 
