@@ -51,6 +51,7 @@ TIMED_SETTINGS = (  # the preset's architecture and its cost-bearing inference s
     "spectrum_window_step",
     "rotation_views",
     "inference_radii",
+    "template_relief",
 )
 
 

@@ -7,6 +7,7 @@ from torch.autograd import gradcheck
 
 from dpcn.estimator import unwarp_rotation_scale
 from dpcn.models import DPCN, UNet, half_turn
+from dpcn.models.dpcn import local_relief
 
 from .conftest import angle_error, cv2_warp, photo
 
@@ -264,6 +265,45 @@ def test_gradcheck_phase1_space_to_depth_features():
     image = torch.rand(1, 1, 17, 16, dtype=torch.float64, requires_grad=True)
     assert gradcheck(model.rotation_scale_unet_input, (image,))
     assert gradcheck(lambda x: model.rs_template(model.rotation_scale_unet_input(x)), (image,), eps=1e-6, atol=1e-5)
+
+
+def test_local_relief_evens_out_steps_of_different_heights():
+    # A kerb-sized step (0.005) and a wall-sized one (0.4) on a flat map: 80 times apart in the
+    # image, about 16 at their edges in its relief with gain 100 (half of each step there:
+    # about asinh(0.25) against asinh(20)); flat areas and constant offsets give 0.
+    image = torch.full((1, 1, 64, 64), 0.1)
+    image[..., :, 20:] += 0.005
+    image[..., :, 44:] += 0.4
+    relief = local_relief(image, 100.0)
+    assert relief.shape == image.shape and relief.dtype == image.dtype
+    kerb, wall = relief[0, 0, 32, 20].item(), relief[0, 0, 32, 44].item()
+    assert kerb == pytest.approx(np.arcsinh(0.25) / np.arcsinh(100), rel=0.15)  # a discrete edge: a bit under half
+    assert wall == pytest.approx(np.arcsinh(20.0) / np.arcsinh(100), rel=0.15)  # a discrete edge: a bit under half
+    assert relief[..., 4:60, 2:8].abs().max() < 1e-6  # far from any step: nothing
+    torch.testing.assert_close(local_relief(image + 0.3, 100.0), relief)
+    assert relief.abs().max() < 1.0
+
+
+def test_gradcheck_local_relief():
+    image = torch.rand(1, 2, 12, 13, dtype=torch.float64, requires_grad=True)
+    assert gradcheck(lambda x: local_relief(x, 20.0, sigma=1.5), (image,))
+
+
+@pytest.mark.parametrize("downsample,pooling", [(1, "average"), (2, "average"), (2, "space_to_depth")])
+def test_template_relief_doubles_only_the_template_inputs(downsample, pooling):
+    model = small_dpcn(template_relief=100.0, rotation_scale_downsample=downsample, rotation_scale_pooling=pooling)
+    per_image = downsample**2 if pooling == "space_to_depth" else 1
+    assert model.rs_template.stem[0].in_channels == 2 * per_image
+    assert model.rs_source.stem[0].in_channels == per_image
+    assert model.t_template.stem[0].in_channels == 2 and model.t_source.stem[0].in_channels == 1
+    image = torch.rand(2, 1, 32, 32)
+    both = model.template_unet_input(image)
+    torch.testing.assert_close(both, torch.cat([image, local_relief(image, 100.0)], dim=1))
+    out = model.eval()(image, image.flip(-1))
+    assert out.pose.angle.shape == (2,) and torch.isfinite(out.pose.angle).all()
+    assert small_dpcn().template_unet_input(image) is image  # off by default
+    with pytest.raises(ValueError, match="model.net.template_relief"):
+        small_dpcn(template_relief=0.0)
 
 
 def test_phase1_at_half_resolution_recovers_an_opencv_pose():
