@@ -68,7 +68,7 @@ def local_relief(image: Tensor, gain: float, sigma: float = 4.0) -> Tensor:
     so slow trends vanish and steps of any height become responses of comparable size: on an
     elevation map coded 0-1 a 0.15 m kerb (about 0.005) and a 10 m wall (about 0.4) differ
     by a factor of 80 in ``x`` and of about 16 at their edges here with ``gain = 100``
-    (each edge keeps half its step: ``asinh(0.25)`` against ``asinh(20)``). Differentiable.
+    (each edge keeps about half its step: ``asinh(0.25)`` against ``asinh(20)``). Differentiable.
 
     Args:
         image: ``(B, C, H, W)``.
@@ -140,17 +140,17 @@ class DPCN(nn.Module):
             dihedral views of the pair (1-8, see :func:`~dpcn.estimator.dihedral_views`: 2 adds
             the mirrored pair, 4 and 8 quarter turns too, for square images); each view costs
             one more pass of both phase-1 U-Nets and spectra.
-        template_relief: with a gain ``g`` (``None``: off), the template's U-Nets (both
-            phases) take the image and its :func:`local_relief` (gain ``g``, ``sigma`` 4 px
-            at full size) side by side, twice the input channels: for templates whose shared
-            structure is small steps next to large ones, such as kerbs beside buildings on an
-            elevation map. The source side is unchanged.
         inference_radii: at inference, phase 1's log-polar maps have this many radii instead
             of ``n_radii`` (``None``: ``n_radii``); the same radius range, so each column spans
             ``n_radii / inference_radii`` times the log-scale step. Training always uses
             ``n_radii``: the U-Nets come before the log-polar resampling, so their weights do
             not depend on it. Half the radii halve the cost of phase 1's log-polar maps and
             their DFTs (README, Benchmarks).
+        template_relief: with a gain ``g`` (``None``: off), the template's U-Nets (both
+            phases) take the image and its :func:`local_relief` (gain ``g``, ``sigma`` 4 px
+            at full size) side by side, twice the input channels: for templates whose shared
+            structure is small steps next to large ones, such as kerbs beside buildings on an
+            elevation map. The source side is unchanged.
     """
 
     def __init__(
