@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import csv
 import os
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -141,6 +143,49 @@ def test_interrupted_run_with_weight_averaging_resumes_exactly(tmp_path):
     """With ema_decay the checkpoint holds the average and the raw weights; both resume."""
     _check_resume(tmp_path, 3, "ema_decay=0.5")
     assert "averaging_state" in torch.load(tmp_path / "resumed/checkpoints/last.ckpt", weights_only=False)
+
+
+@pytest.mark.skipif(not hasattr(os, "killpg"), reason="process groups are POSIX")
+@pytest.mark.parametrize(
+    ("signum", "name", "status"),
+    [(signal.SIGTERM, "SIGTERM", 143), (signal.SIGINT, "Ctrl-C", 130)],
+    ids=["term", "int"],
+)
+def test_a_run_stopped_with_its_data_workers_keeps_its_place(tmp_path, signum, name, status):
+    """A signal to the run's whole process group (a scheduler, `kill -- -PGID`, Ctrl-C in a
+    terminal) stops the data workers too. The run still writes last.ckpt at the step it
+    reached, mid-epoch, and says in one line how to resume, with the shell's exit status."""
+    # 1000 steps per epoch, no periodic checkpoint: a last.ckpt can only be the interrupt's.
+    args = [*SMALL, "data.num_workers=2", "data.epoch_size=4000"]
+    env = {k: v for k, v in os.environ.items() if k not in ("DPCN_DEBUG", "DPCN_COMMAND")}
+    log = tmp_path / "stderr.txt"
+    with log.open("w") as stderr:
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "dpcn", "fit", *args, f"hydra.run.dir={tmp_path / 'run'}"],
+            cwd=tmp_path, env=env, stdout=subprocess.DEVNULL, stderr=stderr, start_new_session=True,
+        )  # fmt: skip
+        try:
+            deadline = time.monotonic() + 120
+            while not (tmp_path / "run" / "metrics.csv").exists():  # written once training steps
+                assert proc.poll() is None, log.read_text()[-3000:]
+                assert time.monotonic() < deadline, "training did not start"
+                time.sleep(0.2)
+            os.killpg(proc.pid, signum)
+            proc.wait(timeout=120)
+        finally:
+            if proc.poll() is None:
+                os.killpg(proc.pid, signal.SIGKILL)
+    err = log.read_text()
+    assert proc.returncode == status, err[-3000:]
+    last = tmp_path / "run" / "checkpoints" / "last.ckpt"
+    message = err.strip().splitlines()[-1]
+    assert message.startswith(f"dpcn fit: stopped by {name}; {last} holds the run after "), message
+    assert message.endswith(f"ckpt_path={last} resumes it")
+    assert "Traceback" not in err
+    step = torch.load(last, weights_only=False)["global_step"]
+    assert 1 <= step < 1000  # the interrupted epoch's place, not an epoch end
+    assert f"after {step} training steps" in message
+    assert load_matcher(last) is not None
 
 
 def test_weight_averaging_is_what_validates_and_reloads(tmp_path):

@@ -47,6 +47,15 @@ class CliError(Exception):
     """An error reported to the user as one line on stderr."""
 
 
+class RunInterrupted(Exception):
+    """A training run stopped from outside (SIGTERM, Ctrl-C): one line on stderr saying what
+    ``last.ckpt`` holds and how to resume, and the shell's exit status for that signal."""
+
+    def __init__(self, message: str, exit_code: int) -> None:
+        super().__init__(message)
+        self.exit_code = exit_code
+
+
 def config_dir() -> Path:
     """The ``conf/`` tree: the repository's (source checkout, editable install)."""
     here = Path(__file__).resolve()
@@ -199,6 +208,23 @@ def _trainer(cfg: DictConfig, run_dir: Path, fit: bool):
     )
 
 
+def _interrupted(run_dir: Path, signal_name: str) -> RunInterrupted:
+    """What an interrupted run left behind, for the one line the user sees."""
+    import torch
+
+    last = run_dir / "checkpoints" / "last.ckpt"
+    code = 143 if signal_name == "SIGTERM" else 130  # 128 + the signal's number, as shells report it
+    try:
+        step = torch.load(last, map_location="cpu", weights_only=False)["global_step"]
+    except Exception:  # none written yet (stopped before the first step), or unreadable
+        return RunInterrupted(f"stopped by {signal_name}; no checkpoint to resume from in {last.parent}", code)
+    return RunInterrupted(
+        f"stopped by {signal_name}; {last} holds the run after {step} training steps: "
+        f"the same command with ckpt_path={last} resumes it",
+        code,
+    )
+
+
 def run_fit(cfg: DictConfig) -> None:
     import lightning as L
     from hydra.utils import instantiate
@@ -221,7 +247,17 @@ def run_fit(cfg: DictConfig) -> None:
         log.info("starting from the weights of %s", cfg.init_from)
     log.info("data: %s, run directory: %s", datamodule.name, run_dir)
     trainer = _trainer(cfg, run_dir, fit=True)
-    trainer.fit(module, datamodule=datamodule, ckpt_path=str(ckpt) if ckpt else None)
+    try:
+        trainer.fit(module, datamodule=datamodule, ckpt_path=str(ckpt) if ckpt else None)
+    except BaseException as error:
+        # Lightning has already written last.ckpt (save_on_exception) and, for Ctrl-C, turned
+        # the KeyboardInterrupt into SystemExit. A SIGTERM may surface as Lightning's
+        # SIGTERMException or as the DataLoader's "worker killed" error (the workers got it too).
+        interrupted = isinstance(error, SystemExit) and trainer.interrupted
+        signal_name = "SIGTERM" if trainer.received_sigterm else "Ctrl-C" if interrupted else None
+        if signal_name is None or trainer.global_rank != 0:
+            raise
+        raise _interrupted(run_dir, signal_name) from None
     if trainer.global_rank == 0:
         best = next((c.best_model_path for c in trainer.checkpoint_callbacks if c.monitor), "")
         print(f"checkpoints: {run_dir / 'checkpoints'} (best: {Path(best).name if best else '-'}, last: last.ckpt)")
@@ -310,6 +346,9 @@ def _task(cfg: DictConfig) -> None:
     command = os.environ["DPCN_COMMAND"]
     try:
         RUNNERS[command](cfg)
+    except RunInterrupted as stop:
+        print(f"dpcn {command}: {stop}", file=sys.stderr)
+        sys.exit(stop.exit_code)
     except (CliError, DpcnInputError, FileNotFoundError, ValueError, TypeError, InstantiationException) as error:
         if os.environ.get("DPCN_DEBUG"):
             raise
