@@ -54,3 +54,12 @@ def test_a_failed_write_keeps_the_previous_file(tmp_path):
         io.save_checkpoint({"global_step": 2, "x": Unpicklable()}, tmp_path / "last.ckpt")
     assert torch.load(tmp_path / "last.ckpt", weights_only=False)["global_step"] == 1
     assert not list(tmp_path.glob(".last.ckpt.tmp-*"))
+
+
+def test_the_signal_disposition_is_left_as_found(tmp_path):
+    previous = signal.signal(signal.SIGCHLD, signal.SIG_DFL)
+    try:
+        AtomicCheckpointIO().save_checkpoint({"global_step": 1}, tmp_path / "last.ckpt")
+        assert signal.getsignal(signal.SIGCHLD) == signal.SIG_DFL
+    finally:
+        signal.signal(signal.SIGCHLD, previous)

@@ -17,7 +17,7 @@ __all__ = ["AtomicCheckpointIO"]
 
 @contextlib.contextmanager
 def _sigchld_ignored() -> Iterator[None]:
-    """Ignore SIGCHLD for the duration (main thread, POSIX; elsewhere a no-op).
+    """Ignore SIGCHLD for the duration, if a Python handler is set (main thread, POSIX).
 
     PyTorch's DataLoader installs a SIGCHLD handler that raises in the main process when a
     worker dies. A SIGTERM sent to a run's whole process group (a job scheduler,
@@ -25,7 +25,11 @@ def _sigchld_ignored() -> Iterator[None]:
     very checkpoint that saves the interrupted run. A worker lost during an ordinary save is
     still noticed afterwards, by the loader's own liveness checks.
     """
-    if not hasattr(signal, "SIGCHLD") or threading.current_thread() is not threading.main_thread():
+    if (
+        not hasattr(signal, "SIGCHLD")
+        or threading.current_thread() is not threading.main_thread()
+        or not callable(signal.getsignal(signal.SIGCHLD))  # no Python handler: nothing can raise
+    ):
         yield
         return
     previous = signal.signal(signal.SIGCHLD, signal.SIG_DFL)
