@@ -250,8 +250,8 @@ def run_fit(cfg: DictConfig) -> None:
     try:
         trainer.fit(module, datamodule=datamodule, ckpt_path=str(ckpt) if ckpt else None)
     except BaseException as error:
-        # Lightning has already written last.ckpt (save_on_exception) and, for Ctrl-C, turned
-        # the KeyboardInterrupt into SystemExit. A SIGTERM may surface as Lightning's
+        # Lightning has already written last.ckpt (save_on_exception; nothing before the first
+        # step) and, for Ctrl-C, turned the KeyboardInterrupt into SystemExit. A SIGTERM may surface as Lightning's
         # SIGTERMException or as the DataLoader's "worker killed" error (the workers got it too).
         interrupted = isinstance(error, SystemExit) and trainer.interrupted
         signal_name = "SIGTERM" if trainer.received_sigterm else "Ctrl-C" if interrupted else None
