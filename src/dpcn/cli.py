@@ -143,6 +143,31 @@ def _check_trainer(cfg: DictConfig) -> None:
         raise ValueError(f"ema_decay must be a number in (0, 1) or null, got {decay!r}")
 
 
+_LIGHTNING_PRECISIONS = ("32-true", "bf16-mixed", "16-mixed", "bf16-true", "16-true", "64-true",
+                         "transformer-engine", "transformer-engine-float16", "32", "16", "bf16", "64")  # fmt: skip
+
+
+def _precision(cfg: DictConfig, fit: bool) -> str | int:
+    """``trainer.precision``, with ``auto`` resolved: by the hardware for training, float32 for
+    evaluation (whose numbers the README reports in float32; ``unet_dtype=bfloat16`` is the
+    low-precision inference setting)."""
+    from .training.precision import AUTO, FP32, auto_precision
+
+    precision = cfg.trainer.get("precision", AUTO)
+    if str(precision) not in (AUTO, *_LIGHTNING_PRECISIONS):
+        raise ValueError(
+            f"trainer.precision must be auto or one of Lightning's {', '.join(_LIGHTNING_PRECISIONS[:6])}, "
+            f"got {precision!r}"
+        )
+    if str(precision) != AUTO:
+        return precision
+    if not fit:
+        return FP32
+    chosen, why = auto_precision(cfg.trainer.get("accelerator", AUTO))
+    log.info("training precision %s (trainer.precision=auto: %s); trainer.precision=32-true: float32", chosen, why)
+    return chosen
+
+
 def _trainer(cfg: DictConfig, run_dir: Path, fit: bool):
     import importlib.util
 
@@ -200,6 +225,7 @@ def _trainer(cfg: DictConfig, run_dir: Path, fit: bool):
             callbacks.append(EMAWeightAveraging(decay=float(cfg.ema_decay)))
     return instantiate(
         cfg.trainer,
+        precision=_precision(cfg, fit),
         default_root_dir=str(run_dir),
         logger=loggers,
         callbacks=callbacks,
