@@ -1,8 +1,9 @@
-"""Training: losses, the Lightning modules, checkpoint writing."""
+"""Training: losses, the Lightning modules, checkpoint writing, the precision to train in."""
 
 from .checkpointing import AtomicCheckpointIO
 from .losses import DPCNLoss
 from .module import CheckpointError, ClassicalModule, DPCNModule, load_matcher, load_weights
+from .precision import auto_precision
 
 __all__ = [
     "AtomicCheckpointIO",
@@ -10,6 +11,7 @@ __all__ = [
     "ClassicalModule",
     "DPCNLoss",
     "DPCNModule",
+    "auto_precision",
     "load_matcher",
     "load_weights",
 ]
