@@ -181,6 +181,8 @@ def _trainer(cfg: DictConfig, run_dir: Path, fit: bool):
     # metrics.csv goes straight into the run directory, beside Hydra's files (hence the filter:
     # the logger would warn that the directory is not empty).
     warnings.filterwarnings("ignore", message="Experiment logs directory .* exists and is not empty")
+    # The model summary sizes bf16-mixed weights as float32, which they are (autocast, not casting).
+    warnings.filterwarnings("ignore", message="Precision bf16-mixed is not supported by the model summary")
     loggers = [CSVLogger(save_dir=str(run_dir), name="", version="")]
     if importlib.util.find_spec("tensorboard") is not None:
         loggers.append(TensorBoardLogger(save_dir=str(run_dir), name="", version="tb"))
