@@ -2,9 +2,10 @@
 
 bfloat16 mixed precision runs the U-Nets' convolutions in bfloat16 and, by
 :func:`dpcn.ops._checks.full_precision`, every DFT, log-polar resampling and correlation in
-float32. It trains as accurately as float32 and 1.5x faster on a CPU that computes bfloat16 in
-hardware (README, Benchmarks); on one without it, bfloat16 is emulated and slower than float32.
-So ``auto`` chooses by the device, and evaluation (``validate`` / ``test``) always runs in float32.
+float32. On a CPU that computes bfloat16 in hardware it trained 1.5x faster, to the same accuracy
+(README, Benchmarks); elsewhere bfloat16 would only be emulated (not measured: no such machine
+here). So ``auto`` chooses by the device, and evaluation (``validate`` / ``test``) always runs in
+float32.
 """
 
 from __future__ import annotations
@@ -55,4 +56,4 @@ def auto_precision(accelerator: str) -> tuple[str, str]:
         return FP32, f"accelerator={accelerator}: bfloat16 is chosen only for CPUs and CUDA GPUs"
     if cpu_computes_bfloat16():
         return BF16, "this CPU computes bfloat16 in hardware (AVX512-BF16 or AMX)"
-    return FP32, "this CPU has no bfloat16 arithmetic in hardware (it would be emulated, slower)"
+    return FP32, "this CPU has no bfloat16 arithmetic in hardware (it would only be emulated)"
