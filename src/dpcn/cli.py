@@ -130,21 +130,24 @@ _TRAINER_INTS = {"max_epochs": -1, "min_epochs": 0, "max_steps": -1, "num_nodes"
 
 def _check_trainer(cfg: DictConfig) -> None:
     from ._validate import check_int, check_number
+    from .training.precision import AUTO, LIGHTNING_PRECISIONS
 
     for key, low in _TRAINER_INTS.items():
         if cfg.trainer.get(key) is not None:
             check_int(f"trainer.{key}", cfg.trainer[key], low=low)
     if cfg.trainer.get("gradient_clip_val") is not None:
         check_number("trainer.gradient_clip_val", cfg.trainer.gradient_clip_val, low=0.0)
+    precision = cfg.trainer.get("precision")
+    if precision is not None and str(precision) not in (AUTO, *LIGHTNING_PRECISIONS):
+        raise ValueError(
+            f"trainer.precision must be auto or one of Lightning's {', '.join(LIGHTNING_PRECISIONS[:6])}, "
+            f"got {precision!r}"
+        )
     if cfg.get("checkpoint_every_n_steps") is not None:
         check_int("checkpoint_every_n_steps", cfg.checkpoint_every_n_steps, low=1)
     decay = cfg.get("ema_decay")
     if decay is not None and not (isinstance(decay, float | int) and not isinstance(decay, bool) and 0 < decay < 1):
         raise ValueError(f"ema_decay must be a number in (0, 1) or null, got {decay!r}")
-
-
-_LIGHTNING_PRECISIONS = ("32-true", "bf16-mixed", "16-mixed", "bf16-true", "16-true", "64-true",
-                         "transformer-engine", "transformer-engine-float16", "32", "16", "bf16", "64")  # fmt: skip
 
 
 def _precision(cfg: DictConfig, fit: bool) -> str | int:
@@ -153,12 +156,7 @@ def _precision(cfg: DictConfig, fit: bool) -> str | int:
     low-precision inference setting)."""
     from .training.precision import AUTO, FP32, auto_precision
 
-    precision = cfg.trainer.get("precision", AUTO)
-    if str(precision) not in (AUTO, *_LIGHTNING_PRECISIONS):
-        raise ValueError(
-            f"trainer.precision must be auto or one of Lightning's {', '.join(_LIGHTNING_PRECISIONS[:6])}, "
-            f"got {precision!r}"
-        )
+    precision = cfg.trainer.get("precision", AUTO)  # checked by _check_trainer
     if str(precision) != AUTO:
         return precision
     if not fit:

@@ -12,11 +12,14 @@ from __future__ import annotations
 
 import torch
 
-__all__ = ["AUTO", "BF16", "FP32", "auto_precision", "cpu_computes_bfloat16"]
+__all__ = ["AUTO", "BF16", "FP32", "LIGHTNING_PRECISIONS", "auto_precision", "cpu_computes_bfloat16"]
 
 AUTO = "auto"
 BF16 = "bf16-mixed"
 FP32 = "32-true"
+# What Lightning's Trainer accepts as ``precision`` (besides AUTO, which dpcn resolves first).
+LIGHTNING_PRECISIONS = ("32-true", "bf16-mixed", "16-mixed", "bf16-true", "16-true", "64-true",
+                        "transformer-engine", "transformer-engine-float16", "32", "16", "bf16", "64")  # fmt: skip
 
 
 def cpu_computes_bfloat16() -> bool:
