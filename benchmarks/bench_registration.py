@@ -116,6 +116,9 @@ def main() -> None:
         "--window-grids", default="", help="also time dpcn with these spectrum_window_grid values, e.g. 3"
     )
     parser.add_argument("--imreg-pairs", type=int, default=None, help="limit imreg_dft to this many pairs (slow)")
+    parser.add_argument(
+        "--decoupled", action="store_true", help="also dpcn with stage 1's decoupled (DPCN++) correlation"
+    )
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     cv2.setNumThreads(args.threads)
@@ -131,6 +134,9 @@ def main() -> None:
     for grid in (int(g) for g in args.window_grids.split(",") if g):
         est_g, per_g = run_dpcn(templates, sources, args.batch, args.device, spectrum_window_grid=grid)
         rows.append((f"dpcn batched, {grid}x{grid} spectrum windows", score(est_g, truth), per_g, len(truth)))
+    if args.decoupled:
+        est_d, per_d = run_dpcn(templates, sources, args.batch, args.device, rotation_scale_correlation="decoupled")
+        rows.append(("dpcn batched, decoupled stage 1", score(est_d, truth), per_d, len(truth)))
     one, per_one = run_dpcn(templates[:50], sources[:50], 1, args.device)
     rows.append(("dpcn one pair at a time", score(one, truth[:50]), per_one, 50))
     cv, per_cv, n_cv = run_pairwise(opencv_fourier_mellin, templates, sources)

@@ -515,3 +515,36 @@ def test_nearest_window_shares_more_of_a_shifted_opencv_pair():
         model.rotation_scale(template, source, views=2, source_shifts=shifts)
     with pytest.raises(ValueError, match="one \\(rows, cols\\) shift per pair"):
         model.rotation_scale(template, source, source_shifts=torch.zeros(2, 2, dtype=torch.long))
+
+
+def test_decoupled_phase1_recovers_an_opencv_pose_and_its_surface_is_separable():
+    # Untrained with input_skip, DPCN is classical phase correlation on softplus images.
+    torch.manual_seed(0)
+    image = photo("camera", (128, 128))
+    template = torch.from_numpy(image)[None, None]
+    source = torch.from_numpy(cv2_warp(image, 6.0, -4.0, 35.0, 1.1))[None, None]
+    model = DPCN(
+        base_channels=2, depth=1, input_skip=True, image_size=(128, 128), rotation_scale_correlation="decoupled"
+    ).eval()
+    with torch.no_grad():
+        out = model(template, source)
+    assert angle_error(out.pose.angle, 35.0) < 0.5 and abs(float(out.pose.scale) - 1.1) < 0.01
+    assert abs(float(out.pose.tx) - 6.0) < 1.0 and abs(float(out.pose.ty) + 4.0) < 1.0
+    # Separable: every row minus its first column is the same row (the angle profile's term).
+    surface = out.rotation_scale.surface[0]
+    torch.testing.assert_close(surface - surface[:, :1], (surface - surface[:, :1])[:1].expand_as(surface))
+    with pytest.raises(ValueError, match="rotation_scale_correlation must be one of joint, decoupled, got '1d'"):
+        small_dpcn(rotation_scale_correlation="1d")
+
+
+def test_gradcheck_end_to_end_with_decoupled_phase1():
+    torch.manual_seed(0)
+    model = (
+        DPCN(base_channels=2, depth=1, image_size=None, n_angles=12, n_radii=10, window=1,
+             rotation_scale_correlation="decoupled")
+        .double()
+        .eval()
+    )  # fmt: skip
+    t = torch.rand(1, 1, 16, 16, dtype=torch.float64, requires_grad=True)
+    s = torch.rand(1, 1, 16, 16, dtype=torch.float64, requires_grad=True)
+    assert gradcheck(lambda a, b: model(a, b).pose.as_tensor(), (t, s), eps=1e-6, atol=1e-4)

@@ -330,6 +330,7 @@ def test_predict_with_a_checkpoint(trained, tmp_path):
         (["fit", "init_from=corrupt.ckpt"], "corrupt or not a torch file"),
         (["fit", "init_from=foreign.ckpt"], "not a Lightning checkpoint of a dpcn model"),
         (["fit", "model.freeze=[rotation]"], "model.freeze takes a list of rotation_scale, translation"),
+        (["fit", "model.net.rotation_scale_correlation=1d"], "rotation_scale_correlation must be one of joint"),
         (["fit", "trainer.precision=bf32"], "trainer.precision must be auto or one of Lightning's 32-true, bf16-mixed"),
     ],
 )

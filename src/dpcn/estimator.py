@@ -35,6 +35,8 @@ __all__ = [
     "window_grid_shifts",
     "dihedral_views",
     "DIHEDRAL_VIEWS",
+    "ROTATION_SCALE_CORRELATIONS",
+    "log_polar_correlation",
     "PhaseCorrelationEstimator",
 ]
 
@@ -77,6 +79,64 @@ class Translation:
     angle: Tensor
     confidence: Tensor
     surface: Tensor
+
+
+# How stage 1 correlates two log-polar maps: "joint", the paper's 2-D phase correlation; or
+# "decoupled", DPCN++'s (Chen et al. 2022) 1-D phase correlations of the maps' angle and
+# log-radius profiles.
+ROTATION_SCALE_CORRELATIONS = ("joint", "decoupled")
+
+
+def check_rotation_scale_correlation(value: str) -> str:
+    """Validate a stage-1 correlation name (:data:`ROTATION_SCALE_CORRELATIONS`)."""
+    if value not in ROTATION_SCALE_CORRELATIONS:
+        raise ValueError(
+            f"rotation_scale_correlation must be one of {', '.join(ROTATION_SCALE_CORRELATIONS)}, got {value!r}"
+        )
+    return value
+
+
+def log_polar_correlation(template: Tensor, sources: Tensor, sigma: float = 0.0, correlation: str = "joint") -> Tensor:
+    """Stage 1's correlation surface of log-polar maps.
+
+    Args:
+        template: ``(B, C, A, R)`` log-polar maps (angle rows, log-radius columns).
+        sources: ``(B, C, A, R)`` or ``(N, B, C, A, R)`` (several sources per template).
+        sigma: Gaussian blur of the surface, in bins.
+        correlation: ``joint``: the 2-D phase correlation of the maps (the paper). A peak
+            needs the maps to agree bin by bin under one shift. ``decoupled``: the mean of
+            two 1-D phase correlations, of the maps summed over radius (the angle profiles:
+            rotation only) and summed over angle (the log-radius profiles: scale only; less
+            their mean and under a Hann window, the axis not being periodic), as in DPCN++.
+            Rotation is then found whatever the scale and vice versa; the surface is
+            separable, so its softmax is the product of the two 1-D softmaxes and the
+            one-peak KL on it is the sum of the two 1-D ones.
+
+    Returns:
+        ``(B, A, R)`` or ``(N * B, A, R)`` surface, circularly centred as
+        :func:`dpcn.ops.correlation_surface`; a perfect match peaks at 1 either way.
+    """
+    n_angles, n_radii = template.shape[-2:]
+    if correlation == "joint":
+        cross = cross_power_spectrum(template, sources)
+        return correlation_surface(cross.flatten(0, -3), (n_angles, n_radii), sigma)
+    check_rotation_scale_correlation(correlation)
+    if template.shape[-2:] != sources.shape[-2:] or template.shape[-4:-2] != sources.shape[-4:-2]:
+        raise ValueError(f"log-polar maps differ: template {tuple(template.shape)}, sources {tuple(sources.shape)}")
+    # The log-radius axis is not periodic, and a power-law spectrum (natural images: ~1/f)
+    # gives every image nearly the same trend along it, which a circular correlation would
+    # match at zero shift: the radius profiles lose their mean and get a Hann window.
+    hann = torch.hann_window(n_radii, periodic=False, device=template.device, dtype=template.dtype)
+    profiles = []
+    for summed, length, window in ((-1, n_angles, None), (-2, n_radii, hann)):
+        a, b = template.sum(summed), sources.sum(summed)
+        a, b = a - a.mean(dim=-1, keepdim=True), b - b.mean(dim=-1, keepdim=True)
+        if window is not None:
+            a, b = a * window, b * window
+        # Channel-pooled 1-D cross-power of the profiles, as a (..., 1, L // 2 + 1) spectrum.
+        cross = (torch.fft.rfft(b) * torch.fft.rfft(a).conj()).sum(dim=-2)[..., None, :].flatten(0, -3)
+        profiles.append(correlation_surface(cross, (1, length), sigma))  # (N * B, 1, L)
+    return 0.5 * (profiles[0].transpose(-2, -1) + profiles[1])
 
 
 def _scale_mask(n_radii: int, step: float, scale_range: tuple[float, float] | None, device, dtype) -> Tensor | None:
@@ -162,6 +222,7 @@ def estimate_rotation_scale(
     hypotheses: int = 1,
     source_shifts: Sequence[tuple[int, int]] = (),
     views: int = 1,
+    correlation: str = "joint",
 ) -> RotationScale:
     """Rotation (mod 180 degrees) and scale of ``source`` relative to ``template``.
 
@@ -188,11 +249,15 @@ def estimate_rotation_scale(
             each view's surface is a partly independent estimate). Their surfaces are averaged
             on the first view's angle axis before the peak search; the result is one estimate
             per pair, with the first view's log-polar maps.
+        correlation: ``joint`` (the paper's 2-D log-polar phase correlation) or
+            ``decoupled`` (DPCN++'s 1-D correlations of the angle and log-radius profiles);
+            see :func:`log_polar_correlation`.
 
     Returns:
         :class:`RotationScale` with ``angle`` in ``[-90, 90)`` degrees and ``scale``.
     """
     check_pair(template, source)
+    check_rotation_scale_correlation(correlation)
     check_views(views, template.shape[-2:])
     if template.shape[0] % views:
         raise ValueError(f"{template.shape[0]} maps are not {views} views of whole pairs")
@@ -204,8 +269,7 @@ def estimate_rotation_scale(
     batch = len(template)
     lp_t, lp_all = maps[:batch], maps[batch:]
     lp_s = lp_all[:batch]
-    cross = cross_power_spectrum(lp_t, lp_all.view(len(sources), *lp_t.shape)).flatten(0, 1)
-    surface = correlation_surface(cross, (n_angles, n_radii), sigma=sigma)
+    surface = log_polar_correlation(lp_t, lp_all.view(len(sources), *lp_t.shape), sigma, correlation)
     if shifts:
         surface = surface.view(len(sources), batch, n_angles, n_radii).amax(dim=0)
     if views > 1:
@@ -339,6 +403,8 @@ class PhaseCorrelationEstimator(nn.Module):
         spectrum_window_grid, spectrum_window_step: stage 1 also takes the source's spectrum
             under an ``n x n`` grid of windows ``step`` of the side apart, the best correlation
             per log-polar bin counting (:func:`window_grid_shifts`); ``1``: centred only.
+        rotation_scale_correlation: ``joint`` (the paper's 2-D log-polar phase correlation)
+            or ``decoupled`` (DPCN++'s 1-D correlations; :func:`log_polar_correlation`).
     """
 
     def __init__(
@@ -358,9 +424,11 @@ class PhaseCorrelationEstimator(nn.Module):
         refine: int = 0,
         spectrum_window_grid: int = 1,
         spectrum_window_step: float = 0.125,
+        rotation_scale_correlation: str = "joint",
     ) -> None:
         super().__init__()
         log_polar_grid(8, 8, n_angles, n_radii, min_radius, max_radius)  # validates the grid
+        check_rotation_scale_correlation(rotation_scale_correlation)
         rotation_sigma = sigma if rotation_sigma is None else rotation_sigma
         rotation_temperature = temperature if rotation_temperature is None else rotation_temperature
         if sigma < 0 or rotation_sigma < 0:
@@ -382,6 +450,7 @@ class PhaseCorrelationEstimator(nn.Module):
             window=window,
             scale_range=None if scale_range is None else tuple(scale_range),
             relative=True,
+            correlation=rotation_scale_correlation,
         )
         self.translation_options = dict(
             resolve_180=resolve_180, sigma=sigma, temperature=temperature, window=window, relative=True

@@ -35,6 +35,7 @@ from .._validate import check_int, check_ints, check_number, check_sequence
 from ..estimator import (
     RotationScale,
     Translation,
+    check_rotation_scale_correlation,
     check_views,
     dihedral_views,
     estimate_rotation_scale,
@@ -151,6 +152,11 @@ class DPCN(nn.Module):
             at full size) side by side, twice the input channels: for templates whose shared
             structure is small steps next to large ones, such as kerbs beside buildings on an
             elevation map. The source side is unchanged.
+        rotation_scale_correlation: how phase 1 correlates the log-polar maps: ``joint``
+            (the paper's 2-D phase correlation) or ``decoupled`` (DPCN++'s 1-D phase
+            correlations of their angle and log-radius profiles, rotation and scale each
+            found whatever the other; see :func:`~dpcn.estimator.log_polar_correlation`).
+            Training and inference both use it.
     """
 
     def __init__(
@@ -187,6 +193,7 @@ class DPCN(nn.Module):
         rotation_views: int = 1,
         inference_radii: int | None = None,
         template_relief: float | None = None,
+        rotation_scale_correlation: str = "joint",
     ) -> None:
         super().__init__()
         # Config values by name (they may arrive as strings from the command line).
@@ -216,6 +223,7 @@ class DPCN(nn.Module):
             check_sequence("image_size", image_size, 2, "an (H, W) pair of integers")
             image_size = [check_int("image_size", v, low=8 * int(rotation_scale_downsample)) for v in image_size]
         log_polar_grid(8, 8, n_angles, n_radii, min_radius, max_radius)  # validates the grid
+        self.rotation_scale_correlation = check_rotation_scale_correlation(rotation_scale_correlation)
         if rotation_scale_pooling not in ROTATION_SCALE_POOLING:
             raise ValueError(
                 f"model.net.rotation_scale_pooling must be one of {', '.join(ROTATION_SCALE_POOLING)}, "
@@ -455,6 +463,7 @@ class DPCN(nn.Module):
             hypotheses=hypotheses,
             source_shifts=self.spectrum_window_shifts(*source_features.shape[-2:], window_grid),
             views=views,
+            correlation=self.rotation_scale_correlation,
         )
 
     def translation_turns(
