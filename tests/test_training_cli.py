@@ -197,6 +197,52 @@ def test_a_run_stopped_with_its_data_workers_keeps_its_place(tmp_path, signum, n
     assert load_matcher(last) is not None
 
 
+_WORKER_DEATH_IN_DEL = """
+import sys
+from torch.utils.data import DataLoader
+from torch.utils.data.dataloader import _MultiProcessingDataLoaderIter
+from dpcn.cli import quiet_worker_shutdown
+
+if sys.argv[1] == "quiet":
+    quiet_worker_shutdown()
+shutdown = _MultiProcessingDataLoaderIter._shutdown_workers
+
+def shutdown_then_report(self):  # what PyTorch's SIGCHLD handler does when a worker died
+    shutdown(self)
+    raise RuntimeError("DataLoader worker (pid(s) 12345) exited unexpectedly")
+
+_MultiProcessingDataLoaderIter._shutdown_workers = shutdown_then_report
+batches = iter(DataLoader(range(4), num_workers=1))
+next(batches)
+del batches  # the loader's own __del__ raises: Python can only print it
+
+class Other:
+    def __del__(self):
+        raise ValueError("another unraisable error")
+
+other = Other()
+del other
+print("finished")
+"""
+
+
+@pytest.mark.skipif(not hasattr(os, "killpg"), reason="SIGCHLD is POSIX")
+def test_a_worker_death_inside_the_loaders_del_is_not_printed(tmp_path):
+    """The race that a signal to the process group can hit (the test above, now and then): a
+    worker's death reported while the loader shuts its workers down in ``__del__``. ``fit``
+    keeps that traceback off stderr; any other unraisable error is still printed."""
+    script = tmp_path / "worker_death.py"
+    script.write_text(_WORKER_DEATH_IN_DEL)
+    runs = {}
+    for mode in ("quiet", "plain"):
+        done = subprocess.run([sys.executable, str(script), mode], capture_output=True, text=True, timeout=120)
+        assert done.returncode == 0 and "finished" in done.stdout, done.stderr[-2000:]
+        runs[mode] = done.stderr
+    assert "DataLoader worker (pid(s) 12345) exited unexpectedly" in runs["plain"]  # what it hides
+    assert "DataLoader worker" not in runs["quiet"] and "Traceback" in runs["quiet"]
+    assert "ValueError: another unraisable error" in runs["quiet"]
+
+
 def test_weight_averaging_is_what_validates_and_reloads(tmp_path):
     """ema_decay: validation and the checkpoint's weights are the moving average of the
     steps' weights. With a decay near 0 the average is the last step's weights; with 0.5

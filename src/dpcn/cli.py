@@ -234,6 +234,42 @@ def _trainer(cfg: DictConfig, run_dir: Path, fit: bool):
     )
 
 
+def _is_worker_shutdown_noise(unraisable) -> bool:
+    """Whether an exception Python could not raise (``sys.unraisablehook``'s argument) is a
+    DataLoader worker's death reported from inside the loader's ``__del__``.
+
+    A signal to the whole process group (a scheduler, ``kill -- -PGID``, Ctrl-C) kills the
+    data workers with the run. PyTorch's SIGCHLD handler reports a dead worker by raising
+    wherever the main thread is; when that is the loader's own ``__del__`` (shutting the
+    workers down), Python can only print the traceback. The run has then already reported the
+    stop (or, for a worker that crashed on its own, raised the same error where it could)."""
+    where = getattr(getattr(unraisable, "object", None), "__qualname__", "")
+    error = getattr(unraisable, "exc_value", None)
+    return (
+        where.endswith("DataLoaderIter.__del__")
+        and isinstance(error, RuntimeError)
+        and str(error).startswith("DataLoader worker")
+    )
+
+
+def quiet_worker_shutdown() -> None:
+    """Keep the worker-death tracebacks of :func:`_is_worker_shutdown_noise` off stderr (they
+    go to the debug log) for the rest of the process; every other unraisable exception is
+    printed as before. A no-op if already installed."""
+    previous = sys.unraisablehook
+    if getattr(previous, "_dpcn_quiet_workers", False):
+        return
+
+    def hook(unraisable) -> None:
+        if _is_worker_shutdown_noise(unraisable):
+            log.debug("data worker shutdown after a stop: %s", unraisable.exc_value)
+            return
+        previous(unraisable)
+
+    hook._dpcn_quiet_workers = True  # type: ignore[attr-defined]
+    sys.unraisablehook = hook
+
+
 def _interrupted(run_dir: Path, signal_name: str) -> RunInterrupted:
     """What an interrupted run left behind, for the one line the user sees."""
     import torch
@@ -273,6 +309,7 @@ def run_fit(cfg: DictConfig) -> None:
         log.info("starting from the weights of %s", cfg.init_from)
     log.info("data: %s, run directory: %s", datamodule.name, run_dir)
     trainer = _trainer(cfg, run_dir, fit=True)
+    quiet_worker_shutdown()
     try:
         trainer.fit(module, datamodule=datamodule, ckpt_path=str(ckpt) if ckpt else None)
     except BaseException as error:
