@@ -234,7 +234,7 @@ def _trainer(cfg: DictConfig, run_dir: Path, fit: bool):
     )
 
 
-def _is_worker_shutdown_noise(unraisable) -> bool:
+def _is_worker_shutdown_noise(unraisable: sys.UnraisableHookArgs) -> bool:
     """Whether an exception Python could not raise (``sys.unraisablehook``'s argument) is a
     DataLoader worker's death reported from inside the loader's ``__del__``.
 
@@ -260,7 +260,7 @@ def quiet_worker_shutdown() -> None:
     if getattr(previous, "_dpcn_quiet_workers", False):
         return
 
-    def hook(unraisable) -> None:
+    def hook(unraisable: sys.UnraisableHookArgs) -> None:
         if _is_worker_shutdown_noise(unraisable):
             log.debug("data worker shutdown after a stop: %s", unraisable.exc_value)
             return
