@@ -20,7 +20,7 @@ import torch
 from torch import Tensor, nn
 
 from .ops._checks import check_pair, full_precision, inputs_checked
-from .ops.correlation import correlation_surface, cross_power_spectrum
+from .ops.correlation import correlation_surface, cross_power_spectrum, phase_correlation_1d
 from .ops.logpolar import log_polar, log_polar_grid, log_radius_step
 from .ops.soft_argmax import local_maxima2d, soft_argmax2d
 from .ops.spectrum import apodization_window, magnitude_spectrum
@@ -116,11 +116,11 @@ def log_polar_correlation(template: Tensor, sources: Tensor, sigma: float = 0.0,
         ``(B, A, R)`` or ``(N * B, A, R)`` surface, circularly centred as
         :func:`dpcn.ops.correlation_surface`; a perfect match peaks at 1 either way.
     """
+    check_rotation_scale_correlation(correlation)
     n_angles, n_radii = template.shape[-2:]
     if correlation == "joint":
         cross = cross_power_spectrum(template, sources)
         return correlation_surface(cross.flatten(0, -3), (n_angles, n_radii), sigma)
-    check_rotation_scale_correlation(correlation)
     if template.shape[-2:] != sources.shape[-2:] or template.shape[-4:-2] != sources.shape[-4:-2]:
         raise ValueError(f"log-polar maps differ: template {tuple(template.shape)}, sources {tuple(sources.shape)}")
     # The log-radius axis is not periodic, and a power-law spectrum (natural images: ~1/f)
@@ -128,15 +128,13 @@ def log_polar_correlation(template: Tensor, sources: Tensor, sigma: float = 0.0,
     # match at zero shift: the radius profiles lose their mean and get a Hann window.
     hann = torch.hann_window(n_radii, periodic=False, device=template.device, dtype=template.dtype)
     profiles = []
-    for summed, length, window in ((-1, n_angles, None), (-2, n_radii, hann)):
+    for summed, window in ((-1, None), (-2, hann)):
         a, b = template.sum(summed), sources.sum(summed)
         a, b = a - a.mean(dim=-1, keepdim=True), b - b.mean(dim=-1, keepdim=True)
         if window is not None:
             a, b = a * window, b * window
-        # Channel-pooled 1-D cross-power of the profiles, as a (..., 1, L // 2 + 1) spectrum.
-        cross = (torch.fft.rfft(b) * torch.fft.rfft(a).conj()).sum(dim=-2)[..., None, :].flatten(0, -3)
-        profiles.append(correlation_surface(cross, (1, length), sigma))  # (N * B, 1, L)
-    return 0.5 * (profiles[0].transpose(-2, -1) + profiles[1])
+        profiles.append(phase_correlation_1d(a, b, sigma).flatten(0, -2))  # (N * B, L)
+    return 0.5 * (profiles[0][:, :, None] + profiles[1][:, None, :])
 
 
 def _scale_mask(n_radii: int, step: float, scale_range: tuple[float, float] | None, device, dtype) -> Tensor | None:
@@ -257,7 +255,6 @@ def estimate_rotation_scale(
         :class:`RotationScale` with ``angle`` in ``[-90, 90)`` degrees and ``scale``.
     """
     check_pair(template, source)
-    check_rotation_scale_correlation(correlation)
     check_views(views, template.shape[-2:])
     if template.shape[0] % views:
         raise ValueError(f"{template.shape[0]} maps are not {views} views of whole pairs")

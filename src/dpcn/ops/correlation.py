@@ -9,7 +9,13 @@ from torch import Tensor, nn
 
 from ._checks import check_pair, full_precision
 
-__all__ = ["cross_power_spectrum", "correlation_surface", "phase_correlation", "PhaseCorrelation"]
+__all__ = [
+    "cross_power_spectrum",
+    "correlation_surface",
+    "phase_correlation",
+    "phase_correlation_1d",
+    "PhaseCorrelation",
+]
 
 
 def _gaussian_transfer(height: int, width: int, sigma: float, device: torch.device, dtype: torch.dtype) -> Tensor:
@@ -86,6 +92,18 @@ def phase_correlation(a: Tensor, b: Tensor, sigma: float = 0.0, eps: float = 1e-
         normalised so this holds for any ``sigma``).
     """
     return correlation_surface(cross_power_spectrum(a, b), a.shape[-2:], sigma, eps)
+
+
+def phase_correlation_1d(a: Tensor, b: Tensor, sigma: float = 0.0, eps: float = 1e-6) -> Tensor:
+    """Phase correlation of 1-D signals, channels pooled: ``(..., C, L) x 2 -> (..., L)``.
+
+    The same normalisation, blur and centring as :func:`phase_correlation`: index ``L // 2 + d``
+    is the circular shift ``d`` of ``b`` relative to ``a``. Leading dimensions of ``a`` and
+    ``b`` broadcast.
+    """
+    cross = (torch.fft.rfft(b) * torch.fft.rfft(a).conj()).sum(dim=-2)
+    surface = correlation_surface(cross.reshape(-1, 1, cross.shape[-1]), (1, a.shape[-1]), sigma, eps)
+    return surface.view(*cross.shape[:-1], a.shape[-1])
 
 
 class PhaseCorrelation(nn.Module):
