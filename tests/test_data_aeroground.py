@@ -364,6 +364,46 @@ def test_low_valid_fraction_warns_once_and_sampling_meets_min_valid(tmp_path):
 # ----------------------------------------------------------------------------- errors
 
 
+@pytest.mark.parametrize("marking", ["alpha", "mask_file", "nan"])
+def test_no_data_reads_as_zero_whatever_the_raster_holds_there(tmp_path, marking):
+    """Unobserved template pixels reach the model as 0, the built-in maps' coding, whether an
+    alpha channel, a mask file or NaN marks them and whatever values lie under them; the
+    source's own no-data too. Two scenes that differ only there give the same pairs."""
+    h, w = 200, 240
+    tex = _texture(1, h, w)
+    observed = np.zeros((h, w), bool)
+    observed[:, :120] = True  # the left half: the crops near the middle straddle its edge
+    junk = _texture(2, h, w) // 2 + 128  # bright values under the no-data
+    clean = np.where(observed, tex, 0).astype(np.uint8)
+    source = _texture(3, h, w)
+    src_alpha = np.full((h, w), 255, np.uint8)
+    src_alpha[95:105] = 0  # the source's own no-data, a band through the middle: an alpha channel
+    _imwrite(tmp_path / "clean" / "sc" / "lidar.png", clean)
+    _imwrite(tmp_path / "clean" / "sc" / "lidar_mask.png", observed.astype(np.uint8) * 255)
+    _imwrite(tmp_path / "clean" / "sc" / "drone.png", np.where(src_alpha > 0, source, 0).astype(np.uint8))
+    messy = tmp_path / "messy" / "sc"
+    under = np.where(observed, tex, junk).astype(np.uint8)
+    if marking == "alpha":
+        _imwrite(messy / "lidar.png", np.dstack([under, under, under, observed.astype(np.uint8) * 255]))
+    elif marking == "mask_file":
+        _imwrite(messy / "lidar.png", under)
+        _imwrite(messy / "lidar_mask.png", observed.astype(np.uint8) * 255)
+    else:  # a float raster: NaN is no data; values already in [0, 1] keep their scale
+        _imwrite(messy / "lidar.tif", np.where(observed, tex / 255.0, np.nan).astype(np.float32))
+    _imwrite(messy / "drone.png", np.dstack([source, source, source, src_alpha]))
+    kw = dict(length=6, size=64, translation=10.0, min_valid=0.0, seed=9)
+    a, b = MapPairs(tmp_path / "clean", "l2d", **kw), MapPairs(tmp_path / "messy", "l2d", **kw)
+    coverage = []
+    for i in range(6):
+        x, y = a[i], b[i]
+        torch.testing.assert_close(y["template_mask"], x["template_mask"])
+        torch.testing.assert_close(y["template"], x["template"], atol=1e-6, rtol=0)
+        torch.testing.assert_close(y["source"], x["source"], atol=1e-6, rtol=0)
+        coverage.append(float(x["template_mask"].mean()))
+    assert min(coverage) < 0.9  # the comparison covered crops that reach the no-data
+    assert (y["template"][:, y["template_mask"][0] == 0] == 0).all()
+
+
 def _scene(root: Path, name="sc", size=(200, 240), mods=("lidar", "satellite")):
     folder = root / name
     for mod in mods:

@@ -11,7 +11,7 @@ import pytest
 import torch
 
 import dpcn
-from dpcn.io import DpcnInputError, load_image
+from dpcn.io import DpcnInputError, load_image, read_image, to_image_tensor
 
 from .conftest import angle_error, cv2_warp, photo
 
@@ -61,6 +61,37 @@ def test_register_paths(tmp_path, pair):
     cv2.imwrite(str(tmp_path / "s.tif"), (source * 65535).astype(np.uint16))
     check(dpcn.register(str(tmp_path / "t.png"), str(tmp_path / "s.tif")))
     assert load_image(tmp_path / "s.tif").max() <= 1.0
+
+
+def test_files_read_as_the_map_data_reads_them(tmp_path, pair):
+    """``load_image`` (what ``predict`` and ``register(path, ...)`` read) follows the map-pair
+    data sets' rules, so a crop matched at inference looks like a crop trained on: no data
+    (alpha 0, NaN) reads as 0 whatever lies under it, and a float raster in metres is
+    min-max normalised over its finite pixels."""
+    template, _ = pair
+    grey = (template * 255).astype(np.uint8)
+    hidden = np.zeros(grey.shape, bool)
+    hidden[:20] = True
+    under = np.where(hidden, 255, grey).astype(np.uint8)
+    cv2.imwrite(str(tmp_path / "rgba.png"), np.dstack([under, under, under, np.where(hidden, 0, 255).astype(np.uint8)]))
+    image, valid = read_image(tmp_path / "rgba.png")
+    np.testing.assert_array_equal(valid, ~hidden)
+    np.testing.assert_array_equal(image[..., 0], np.where(hidden, 0, grey))
+    loaded = load_image(tmp_path / "rgba.png")
+    assert loaded.shape == (*grey.shape, 3) and loaded[hidden].max() == 0.0
+    np.testing.assert_allclose(loaded[~hidden][:, 1], grey[~hidden] / 255.0, atol=1e-6)
+    # The same RGBA as an array: the alpha's zeros read as 0 too.
+    array = np.dstack([under, under, under, np.where(hidden, 0, 255).astype(np.uint8)])
+    np.testing.assert_allclose(to_image_tensor(array)[0].permute(1, 2, 0).numpy(), loaded, atol=1e-6)
+
+    metres = (12.5 + 30.0 * template).astype(np.float32)
+    metres[hidden] = np.nan
+    assert cv2.imwrite(str(tmp_path / "dem.tif"), metres)
+    loaded = load_image(tmp_path / "dem.tif")
+    assert np.isfinite(loaded).all() and loaded.min() == 0.0 and loaded.max() == pytest.approx(1.0)
+    assert loaded[hidden].max() == 0.0
+    finite = metres[~hidden]
+    np.testing.assert_allclose(loaded[~hidden], (finite - finite.min()) / (finite.max() - finite.min()), atol=1e-6)
 
 
 @pytest.mark.parametrize(

@@ -9,7 +9,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-__all__ = ["DpcnInputError", "load_image", "to_image_tensor", "to_grey", "prepare_pair"]
+__all__ = ["DpcnInputError", "read_image", "load_image", "zero_no_data", "to_image_tensor", "to_grey", "prepare_pair"]
 
 _MIN_SIZE = 8
 
@@ -18,23 +18,74 @@ class DpcnInputError(ValueError):
     """A user-facing problem with an input (file, array or tensor); the message names it."""
 
 
-def load_image(path: str | Path) -> np.ndarray:
-    """Read an image file as ``(H, W)`` grey or ``(H, W, 3)`` RGB, float32 in ``[0, 1]``.
+def read_image(path: str | Path) -> tuple[np.ndarray, np.ndarray | None]:
+    """Decode an image file: ``(image, valid)``.
 
-    8- and 16-bit PNG/JPEG/TIFF and float TIFF are supported; an alpha channel is dropped.
+    ``image`` is ``(H, W)`` grey or ``(H, W, 3)`` RGB, of dtype uint8 or uint16 (scaled by
+    :func:`load_image` by their range) or float32 in ``[0, 1]``: other integer and float
+    rasters (e.g. an elevation GeoTIFF in metres) are min-max normalised over their finite
+    pixels unless already within ``[0, 1]``. ``valid`` is a bool ``(H, W)`` mask of the
+    observed pixels, or ``None`` when the file marks none as missing: an alpha channel's zeros
+    and non-finite floats (NaN, inf) are no data. No-data pixels read as 0 in ``image``, the
+    convention of the whole project (the built-in maps store 0 there), so what is under an
+    alpha of 0 never reaches a model.
+
+    The bytes are read by numpy and decoded by OpenCV, so any path the OS accepts works.
     """
     path = Path(path)
     if not path.exists():
         raise DpcnInputError(f"image file not found: {path}")
     if not path.is_file():
         raise DpcnInputError(f"not a file: {path}")
-    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    try:
+        data = np.fromfile(str(path), dtype=np.uint8)
+    except OSError as e:
+        raise DpcnInputError(f"cannot read image file {path}: {e}") from e
+    image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
     if image is None:
         raise DpcnInputError(f"cannot read image file (unsupported or corrupt): {path}")
+    valid = None
     if image.ndim == 3:
-        if image.shape[2] == 4:
-            image = image[:, :, :3]
-        image = cv2.cvtColor(image, cv2.COLOR_BGR2RGB) if image.shape[2] == 3 else image[:, :, 0]
+        if image.shape[2] in (2, 4):  # grey + alpha, BGR + alpha
+            valid = image[..., -1] > 0
+            image = image[..., :-1]
+        if image.shape[2] == 3:
+            image = cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
+        elif image.shape[2] == 1:
+            image = image[..., 0]
+        else:
+            raise DpcnInputError(f"{path}: unsupported number of channels {image.shape[2]}")
+    if image.dtype not in (np.uint8, np.uint16):
+        image = image.astype(np.float32)
+        finite = np.isfinite(image) if image.ndim == 2 else np.isfinite(image).all(-1)
+        if not finite.all():
+            valid = finite if valid is None else (valid & finite)
+        values = image[finite]
+        if values.size == 0:
+            raise DpcnInputError(f"{path}: no finite pixel values")
+        lo, hi = float(values.min()), float(values.max())
+        if lo < 0.0 or hi > 1.0:
+            image = (image - lo) / max(hi - lo, 1e-12)
+    if valid is not None:
+        image = zero_no_data(image, valid)
+    return np.ascontiguousarray(image), valid
+
+
+def zero_no_data(image: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """``image`` ``(H, W)`` or ``(H, W, C)`` with 0 wherever the bool ``(H, W)`` mask ``valid``
+    is False (the project's no-data value); same dtype."""
+    return np.where(valid[..., None] if image.ndim == 3 else valid, image, 0).astype(image.dtype)
+
+
+def load_image(path: str | Path) -> np.ndarray:
+    """Read an image file as ``(H, W)`` grey or ``(H, W, 3)`` RGB, float32 in ``[0, 1]``.
+
+    8- and 16-bit PNG/JPEG/TIFF and float TIFF are supported, read as the map-pair data sets
+    read them (:func:`read_image`): no-data pixels (alpha 0, NaN, inf) are 0, and float
+    rasters outside ``[0, 1]`` are min-max normalised, so a crop matched at inference looks
+    like the crops a model was trained on.
+    """
+    image, _ = read_image(path)
     return _to_unit_float(image, str(path))
 
 
@@ -64,8 +115,8 @@ def to_image_tensor(image: np.ndarray | Tensor, name: str = "image") -> Tensor:
             raise DpcnInputError(
                 f"{name}: a numpy image must be (H, W) or (H, W, C) with C in 1, 3, 4; got shape {image.shape}"
             )
-        if image.shape[2] == 4:
-            image = image[:, :, :3]
+        if image.shape[2] == 4:  # RGBA: an alpha of 0 is no data, which reads as 0 (as in files)
+            image = zero_no_data(image[:, :, :3], image[:, :, 3] > 0)
         tensor = torch.from_numpy(np.ascontiguousarray(_to_unit_float(image, name))).permute(2, 0, 1)[None]
     elif isinstance(image, Tensor):
         tensor = image

@@ -9,10 +9,11 @@ Folder layout read by :class:`MapPairs` (bring your own maps this way)::
         stereo.<ext>                 ground-robot stereo elevation map (template)
         drone.<ext>                  drone orthomosaic (source)
         satellite.<ext>              satellite image (source)
-        <modality>_mask.<ext>        optional no-data mask, nonzero = valid; without it an
-                                     alpha channel of the raster is the mask; without
-                                     either every pixel is valid (only the template
-                                     modality's mask is used; it gives template_mask)
+        <modality>_mask.<ext>        optional no-data mask, nonzero = valid; an alpha
+                                     channel of the raster (0 = no data) and non-finite
+                                     float pixels mark no data too; without any of them
+                                     every pixel is valid (only the template modality's
+                                     mask file is used; it gives template_mask)
         regions.json                 optional: {"train": [[x0, y0, x1, y1], ...],
                                                 "val": [...], "test": [...]}
 
@@ -21,8 +22,10 @@ Folder layout read by :class:`MapPairs` (bring your own maps this way)::
   to leave some out).
 * All rasters of a scene are co-registered: same pixel grid, same size (H, W), any of
   grey, RGB or RGBA. 8-bit and 16-bit integers are scaled by their range to [0, 1];
-  floating-point rasters (e.g. elevation GeoTIFFs) are min-max normalised over their
-  finite pixels (NaN/inf count as no data).
+  other integer and floating-point rasters (e.g. elevation GeoTIFFs) are min-max
+  normalised over their finite pixels unless already within [0, 1] (NaN/inf count as no
+  data). **No-data pixels read as 0**, whatever the raster holds under them: the built-in
+  maps store 0 there, and ``dpcn.load_image`` (``predict``) reads a single crop the same way.
 * ``regions.json`` rectangles are pixel coordinates ``x0 <= x < x1``, ``y0 <= y < y1``
   bounding the crop *centres* of a split. A missing file means the whole raster is one
   region used for every split; a scene whose file lacks the requested split (or lists
@@ -67,6 +70,8 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
+from dpcn.io import DpcnInputError, zero_no_data
+from dpcn.io import read_image as _io_read_image
 from dpcn.pose import pose_to_matrix, sample_poses
 
 __all__ = ["DataError", "PAIRS", "IMAGE_EXTENSIONS", "MapPairs", "CsvPairs", "read_image"]
@@ -88,55 +93,19 @@ class DataError(ValueError):
 # image reading
 
 
-def _decode(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
-    """Read an image as (H, W) or (H, W, 3) RGB in [0, 1]-scalable native dtype, plus an
-    optional bool validity mask (alpha channel, non-finite floats)."""
-    try:
-        data = np.fromfile(str(path), dtype=np.uint8)
-    except OSError as e:
-        raise DataError(f"cannot read image file {path}: {e}") from e
-    image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
-    if image is None:
-        raise DataError(f"cannot decode image file {path} (not a readable png/jpg/tif image?)")
-    valid = None
-    if image.ndim == 3:
-        if image.shape[2] == 4:
-            valid = image[..., 3] > 0
-            image = image[..., :3]
-        if image.shape[2] == 3:
-            image = cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
-        elif image.shape[2] == 1:
-            image = image[..., 0]
-        elif image.shape[2] == 2:  # grey + alpha
-            valid = image[..., 1] > 0
-            image = image[..., 0]
-        else:
-            raise DataError(f"{path}: unsupported number of channels {image.shape[2]}")
-    if image.dtype not in (np.uint8, np.uint16):  # other ints, floats: min-max over finite pixels
-        image = image.astype(np.float32)
-        finite = np.isfinite(image) if image.ndim == 2 else np.isfinite(image).all(-1)
-        if not finite.all():
-            valid = finite if valid is None else (valid & finite)
-        values = image[finite]
-        if values.size == 0:
-            raise DataError(f"{path}: no finite pixel values")
-        lo, hi = float(values.min()), float(values.max())
-        if lo < 0.0 or hi > 1.0:
-            image = (image - lo) / max(hi - lo, 1e-12)
-        image = np.where(finite[..., None] if image.ndim == 3 else finite, image, 0.0)
-        image = image.astype(np.float32)
-    return np.ascontiguousarray(image), valid
-
-
 def read_image(path: str | Path) -> tuple[np.ndarray, np.ndarray | None]:
-    """Read an image file: ``(image, valid)`` with ``image`` (H, W) or (H, W, 3) RGB of
+    """:func:`dpcn.io.read_image` (the one decoder of the project: no-data pixels read as 0),
+    raising :class:`DataError`: ``(image, valid)`` with ``image`` (H, W) or (H, W, 3) RGB of
     dtype uint8, uint16 or float32 in [0, 1], and ``valid`` a bool mask or None."""
-    return _decode(Path(path))
+    try:
+        return _io_read_image(path)
+    except DpcnInputError as e:
+        raise DataError(str(e)) from None
 
 
 @functools.lru_cache(maxsize=256)
 def _cached(path: str, mtime_ns: int, size: int) -> tuple[np.ndarray, np.ndarray | None]:
-    image, valid = _decode(Path(path))
+    image, valid = read_image(path)
     image.setflags(write=False)
     if valid is not None:
         valid.setflags(write=False)
@@ -575,7 +544,12 @@ class MapPairs(Dataset):
                     )
 
         template = timg[oy : oy + h, ox : ox + w]
-        tmask = np.ones((h, w), np.float32) if mask is None else mask[oy : oy + h, ox : ox + w].astype(np.float32)
+        if mask is None:
+            tmask = np.ones((h, w), np.float32)
+        else:  # what the mask file hides reads as 0 too, like an alpha channel's no data
+            observed = mask[oy : oy + h, ox : ox + w]
+            template = zero_no_data(template, observed)
+            tmask = observed.astype(np.float32)
 
         simg, _ = _load(scene.source_path)
         # Warp only the part of the big raster the footprint touches (cv2 maps are limited
