@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -195,6 +196,47 @@ def test_a_run_stopped_with_its_data_workers_keeps_its_place(tmp_path, signum, n
     assert 2 <= step < 1000  # the interrupted epoch's place, not an epoch end
     assert f"after {step} training steps" in message
     assert load_matcher(last) is not None
+
+
+@pytest.mark.parametrize(
+    ("signum", "name", "status"),
+    [(signal.SIGTERM, "SIGTERM", 143), (signal.SIGINT, "Ctrl-C", 130)],
+    ids=["term", "int"],
+)
+def test_an_evaluation_stopped_by_a_signal_says_so_in_one_line(tmp_path, signum, name, status):
+    """`test` stopped with its data workers (a signal to the process group) ends with one line
+    saying how far it got and that no metrics were written, the shell's exit status, and no
+    traceback or partial metrics file."""
+    args = ["model=classical", "data.num_workers=2", "data.test_length=40000", f"hydra.run.dir={tmp_path / 'run'}"]
+    env = {k: v for k, v in os.environ.items() if k not in ("DPCN_DEBUG", "DPCN_COMMAND")}
+    out, log = tmp_path / "stdout.txt", tmp_path / "stderr.txt"
+    with out.open("w") as stdout, log.open("w") as stderr:
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "dpcn", "test", *args],
+            cwd=tmp_path, env=env, stdout=stdout, stderr=stderr, start_new_session=True,
+        )  # fmt: skip
+        try:
+            deadline = time.monotonic() + 120
+            while "Testing DataLoader 0:" not in out.read_text() or "/5000 [" not in out.read_text():
+                assert proc.poll() is None, log.read_text()[-3000:]
+                assert time.monotonic() < deadline, "testing did not start"
+                time.sleep(0.2)
+            time.sleep(1.0)  # some batches done
+            os.killpg(proc.pid, signum)
+            proc.wait(timeout=120)
+        finally:
+            if proc.poll() is None:
+                os.killpg(proc.pid, signal.SIGKILL)
+    err = log.read_text()
+    assert proc.returncode == status, err[-3000:]
+    message = err.strip().splitlines()[-1]
+    assert re.fullmatch(
+        rf"dpcn test: stopped by {name} after \d+ batches; "
+        r"no metrics written \(they need every pair\): run the command again",
+        message,
+    ), message
+    assert "Traceback" not in err
+    assert not (tmp_path / "run" / "metrics_test.csv").exists()
 
 
 _WORKER_DEATH_IN_DEL = """

@@ -48,8 +48,9 @@ class CliError(Exception):
 
 
 class RunInterrupted(Exception):
-    """A training run stopped from outside (SIGTERM, Ctrl-C): one line on stderr saying what
-    ``last.ckpt`` holds and how to resume, and the shell's exit status for that signal."""
+    """A run stopped from outside (SIGTERM, Ctrl-C): one line on stderr saying what it left
+    (for ``fit``, what ``last.ckpt`` holds and how to resume), and the shell's exit status for
+    that signal."""
 
     def __init__(self, message: str, exit_code: int) -> None:
         super().__init__(message)
@@ -270,12 +271,26 @@ def quiet_worker_shutdown() -> None:
     sys.unraisablehook = hook
 
 
+def _stop_signal(trainer, error: BaseException) -> str | None:
+    """``"SIGTERM"`` or ``"Ctrl-C"`` when ``error`` ended a Lightning run because of that
+    signal, else ``None``. Lightning turns a Ctrl-C's KeyboardInterrupt into SystemExit; a
+    SIGTERM surfaces as Lightning's SIGTERMException or as the DataLoader's "worker killed"
+    error (the workers got it too)."""
+    if trainer.received_sigterm:
+        return "SIGTERM"
+    return "Ctrl-C" if isinstance(error, SystemExit) and trainer.interrupted else None
+
+
+def _exit_code(signal_name: str) -> int:
+    return 143 if signal_name == "SIGTERM" else 130  # 128 + the signal's number, as shells report it
+
+
 def _interrupted(run_dir: Path, signal_name: str) -> RunInterrupted:
     """What an interrupted run left behind, for the one line the user sees."""
     import torch
 
     last = run_dir / "checkpoints" / "last.ckpt"
-    code = 143 if signal_name == "SIGTERM" else 130  # 128 + the signal's number, as shells report it
+    code = _exit_code(signal_name)
     try:
         step = torch.load(last, map_location="cpu", weights_only=False)["global_step"]
     except Exception:  # none written yet (stopped before the first step), or unreadable
@@ -313,11 +328,8 @@ def run_fit(cfg: DictConfig) -> None:
     try:
         trainer.fit(module, datamodule=datamodule, ckpt_path=str(ckpt) if ckpt else None)
     except BaseException as error:
-        # Lightning has already written last.ckpt (save_on_exception; nothing before the first
-        # step) and, for Ctrl-C, turned the KeyboardInterrupt into SystemExit. A SIGTERM may surface as Lightning's
-        # SIGTERMException or as the DataLoader's "worker killed" error (the workers got it too).
-        interrupted = isinstance(error, SystemExit) and trainer.interrupted
-        signal_name = "SIGTERM" if trainer.received_sigterm else "Ctrl-C" if interrupted else None
+        # Lightning has already written last.ckpt (save_on_exception; nothing before the first step).
+        signal_name = _stop_signal(trainer, error)
         if signal_name is None or trainer.global_rank != 0:
             raise
         raise _interrupted(run_dir, signal_name) from None
@@ -351,7 +363,19 @@ def _run_evaluation(cfg: DictConfig, stage: str) -> None:
             )
         name = "classical"
     trainer = _trainer(cfg, run_dir, fit=False)
-    getattr(trainer, stage)(module, datamodule=datamodule)
+    quiet_worker_shutdown()
+    try:
+        getattr(trainer, stage)(module, datamodule=datamodule)
+    except BaseException as error:
+        signal_name = _stop_signal(trainer, error)
+        if signal_name is None or trainer.global_rank != 0:
+            raise
+        done = trainer.test_loop.batch_progress if stage == "test" else trainer.validate_loop.batch_progress
+        raise RunInterrupted(
+            f"stopped by {signal_name} after {done.current.completed} batches; no metrics written "
+            "(they need every pair): run the command again",
+            _exit_code(signal_name),
+        ) from None
     if trainer.global_rank == 0:
         print(module.report(stage, f"{name} on {datamodule.name}", run_dir))
         print(f"metrics written to {run_dir / f'metrics_{stage}.csv'}")
