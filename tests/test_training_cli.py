@@ -355,6 +355,8 @@ def test_validate_and_test_print_the_paper_table(trained, tmp_path):
     out = dpcn("validate", *SMALL_DATA, "model=classical", f"hydra.run.dir={tmp_path / 'v'}", cwd=tmp_path)
     assert "classical on sim_heterogeneous" in out.stdout
     assert (tmp_path / "v" / "metrics_validate.csv").is_file()
+    # Lightning's adverts and its warning about its own code stay out of the output.
+    assert "Tip:" not in out.stderr + out.stdout and "LeafSpec" not in out.stderr, out.stderr
 
 
 def test_fine_tuning_starts_from_the_weights_and_keeps_the_frozen_phase(trained, tmp_path):

@@ -167,6 +167,19 @@ def _precision(cfg: DictConfig, fit: bool) -> str | int:
     return chosen
 
 
+def _drop_records_starting(logger_name: str, prefix: str) -> None:
+    """Filter the log records of ``logger_name`` whose message starts with ``prefix`` (once)."""
+    logger = logging.getLogger(logger_name)
+    if any(getattr(f, "_dpcn_prefix", None) == prefix for f in logger.filters):
+        return
+
+    def keep(record: logging.LogRecord) -> bool:
+        return not str(record.msg).startswith(prefix)
+
+    keep._dpcn_prefix = prefix  # type: ignore[attr-defined]
+    logger.addFilter(keep)
+
+
 def _trainer(cfg: DictConfig, run_dir: Path, fit: bool):
     import importlib.util
 
@@ -182,6 +195,10 @@ def _trainer(cfg: DictConfig, run_dir: Path, fit: bool):
     warnings.filterwarnings("ignore", message="Experiment logs directory .* exists and is not empty")
     # The model summary sizes bf16-mixed weights as float32, which they are (autocast, not casting).
     warnings.filterwarnings("ignore", message="Precision bf16-mixed is not supported by the model summary")
+    # Lightning 2.6 with torch 2.13 warns about its own pytree code, and advertises cloud
+    # services on every run: nothing the user can act on, so neither reaches the output.
+    warnings.filterwarnings("ignore", message=r"`isinstance\(treespec, LeafSpec\)` is deprecated")
+    _drop_records_starting("lightning.pytorch.utilities.rank_zero", "💡 Tip:")
     loggers = [CSVLogger(save_dir=str(run_dir), name="", version="")]
     if importlib.util.find_spec("tensorboard") is not None:
         loggers.append(TensorBoardLogger(save_dir=str(run_dir), name="", version="tb"))
