@@ -1,5 +1,7 @@
 """dpcn.register and `python -m dpcn predict`: inputs of every kind, and bad ones."""
 
+import csv
+import io
 import json
 import os
 import subprocess
@@ -161,6 +163,73 @@ def test_cli_predict_errors_are_one_line(tmp_path, pair, args, message):
     lines = out.stderr.strip().splitlines()
     assert len(lines) == 1 and message in lines[0], out.stderr
     assert "Traceback" not in out.stderr
+
+
+PAIR_TRUTHS = {  # name: (photo, size, pose); "wide" has another size, so it is a batch of its own
+    "astro": ("astronaut", (256, 256), TRUTH),
+    "cam": ("camera", (256, 256), (-5.0, 8.0, -30.0, 1.1)),
+    "wide": ("coffee", (192, 256), (4.0, -3.0, 75.0, 0.95)),
+    "moon": ("moon", (256, 256), (0.0, 12.0, 170.0, 1.05)),
+}
+
+
+def write_pairs(root, header="name,note", missing=()):
+    """Pre-cut pairs in the CSV layout, the pose left out of the CSV (unknown to predict)."""
+    for folder in ("template", "source"):
+        (root / folder).mkdir(parents=True, exist_ok=True)
+    lines = [header]
+    for name, (image, size, pose) in PAIR_TRUTHS.items():
+        template = photo(image, size)
+        cv2.imwrite(str(root / "template" / f"{name}.png"), (template * 255).astype(np.uint8))
+        if name not in missing:
+            cv2.imwrite(str(root / "source" / f"{name}.png"), (cv2_warp(template, *pose) * 255).astype(np.uint8))
+        lines.append(f"{name},x")
+    (root / "pairs.csv").write_text("\n".join(lines) + "\n")
+    return root / "pairs.csv"
+
+
+def test_cli_predict_pairs_writes_every_pose_as_csv(tmp_path):
+    """`predict pairs=CSV` matches every pair the CSV names, batched, in the CSV's order, with
+    the poses a single-pair `predict` gives; `out=FILE` writes the same rows."""
+    pairs = write_pairs(tmp_path)
+    out = run_cli("predict", f"pairs={pairs}", "predict_batch_size=2", cwd=tmp_path)
+    assert out.returncode == 0, out.stderr
+    rows = list(csv.DictReader(io.StringIO(out.stdout)))
+    assert [r["name"] for r in rows] == list(PAIR_TRUTHS)
+    assert list(rows[0]) == ["name", "tx", "ty", "angle", "scale", "confidence"]
+    for row in rows:
+        check(dpcn.Pose.from_dict({k: float(v) for k, v in row.items() if k != "name"}), PAIR_TRUTHS[row["name"]][2])
+    single = run_cli("predict", "template=template/cam.png", "source=source/cam.png", cwd=tmp_path)
+    alone = json.loads(single.stdout)
+    for key in ("tx", "ty", "angle", "scale", "confidence"):
+        assert float(rows[1][key]) == pytest.approx(alone[key], rel=1e-4, abs=1e-4), key
+    written = run_cli("predict", f"pairs={pairs}", "out=poses.csv", cwd=tmp_path)
+    assert written.returncode == 0 and written.stdout == "", written.stderr
+    assert (tmp_path / "poses.csv").read_text() == out.stdout
+    assert "poses of 4 pairs written to poses.csv" in written.stderr
+
+
+@pytest.mark.parametrize(
+    "args,setup,message",
+    [
+        (["template=t.png"], None, "template=PATH and source=PATH, or pairs=CSV, not both"),
+        (["predict_batch_size=0"], None, "predict_batch_size must be an integer >= 1, got 0"),
+        (["out=no/such/dir/poses.csv"], None, "folder no/such/dir does not exist"),
+        ([], "missing", "source image for 'cam' not found"),
+        ([], "header", "missing column(s) ['name']"),
+        ([], "sizes", "pair 'cam': template and source must have the same size"),
+    ],
+)
+def test_cli_predict_pairs_errors_are_one_line(tmp_path, args, setup, message):
+    pairs = write_pairs(tmp_path, header="id,note" if setup == "header" else "name,note",
+                        missing=("cam",) if setup == "missing" else ())  # fmt: skip
+    if setup == "sizes":
+        cv2.imwrite(str(tmp_path / "source" / "cam.png"), np.zeros((64, 64), np.uint8))
+    out = run_cli("predict", f"pairs={pairs}", "out=poses.csv", *args, cwd=tmp_path)
+    assert out.returncode == 2
+    lines = out.stderr.strip().splitlines()
+    assert len(lines) == 1 and message in lines[0], out.stderr
+    assert not (tmp_path / "poses.csv").exists() and not list(tmp_path.glob(".poses*"))  # nothing half-written
 
 
 def test_cli_unknown_key_and_command(tmp_path):

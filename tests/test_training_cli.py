@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import csv
+import io
+import json
 import os
 import re
 import signal
@@ -391,12 +393,23 @@ def test_predict_with_a_checkpoint(trained, tmp_path):
     import cv2
     import numpy as np
 
-    image = (np.random.default_rng(0).random((32, 32)) * 255).astype(np.uint8)
-    cv2.imwrite(str(tmp_path / "a.png"), image)
-    out = dpcn(
-        "predict", "template=a.png", "source=a.png", f"ckpt_path={trained / 'checkpoints/last.ckpt'}", cwd=tmp_path
-    )
-    assert set(eval(out.stdout)) == {"tx", "ty", "angle", "scale", "confidence"}  # noqa: S307 (JSON of floats)
+    ckpt = f"ckpt_path={trained / 'checkpoints/last.ckpt'}"
+    rng = np.random.default_rng(0)
+    for folder in ("template", "source"):
+        (tmp_path / folder).mkdir()
+    for name in ("p0", "p1", "p2"):
+        for folder in ("template", "source"):
+            cv2.imwrite(str(tmp_path / folder / f"{name}.png"), (rng.random((32, 32)) * 255).astype(np.uint8))
+    out = dpcn("predict", "template=template/p1.png", "source=source/p1.png", ckpt, cwd=tmp_path)
+    single = json.loads(out.stdout)
+    assert set(single) == {"tx", "ty", "angle", "scale", "confidence"}
+    # The whole CSV in batches of two: the same pose for p1 as alone.
+    (tmp_path / "pairs.csv").write_text("name\np0\np1\np2\n")
+    out = dpcn("predict", "pairs=pairs.csv", "predict_batch_size=2", ckpt, cwd=tmp_path)
+    rows = list(csv.DictReader(io.StringIO(out.stdout)))
+    assert [r["name"] for r in rows] == ["p0", "p1", "p2"]
+    for key, value in single.items():
+        assert float(rows[1][key]) == pytest.approx(value, rel=1e-4, abs=1e-4), key
 
 
 @pytest.mark.parametrize(

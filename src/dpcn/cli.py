@@ -1,7 +1,7 @@
 """Command line: ``python -m dpcn <command> [key=value ...] [-m]`` (Hydra overrides).
 
 Commands: ``fit`` (train DPCN), ``validate``/``test`` (the paper's metrics of a checkpoint or
-of ``model=classical``), ``predict`` (one pair -> JSON pose). The configuration tree is
+of ``model=classical``), ``predict`` (one pair -> JSON pose; ``pairs=CSV`` -> a CSV of poses). The configuration tree is
 ``conf/`` at the repository root (``conf/config.yaml``); every value there can be overridden.
 This module only parses, builds (``hydra.utils.instantiate``) and reports: the work is done
 by :mod:`dpcn.training`, :mod:`dpcn.data` and :mod:`dpcn.registration`.
@@ -9,14 +9,24 @@ by :mod:`dpcn.training`, :mod:`dpcn.data` and :mod:`dpcn.registration`.
 
 from __future__ import annotations
 
+import io
 import logging
 import os
 import sys
 import warnings
+from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import hydra
 from omegaconf import DictConfig, OmegaConf
+
+from ._validate import check_int
+
+if TYPE_CHECKING:
+    from torch import Tensor
+
+    from .pose import Pose
 
 log = logging.getLogger("dpcn")
 
@@ -34,6 +44,9 @@ commands: {", ".join(COMMANDS)}
       prints the paper's metrics table and writes metrics_<stage>.csv in the run directory
   predict template=A.png source=B.png [ckpt_path=model.ckpt]
       prints {{"tx", "ty", "angle", "scale", "confidence"}} as JSON
+  predict pairs=DIR/pairs.csv [out=poses.csv] [ckpt_path=model.ckpt]
+      the pose of every pair the CSV names (images DIR/template/<name>.png, DIR/source/<name>.png),
+      as CSV rows name,tx,ty,angle,scale,confidence (stdout, or out=FILE)
   make-data out=DIR [n_scenes=8] [scene_size=[1280,2560]] [split_gap=630] [seed=0]
       writes procedural scenes (lidar, stereo, drone, satellite + masks + regions.json) in
       the layout that data=l2d|l2sat|s2d|s2sat data.root=DIR reads
@@ -87,24 +100,82 @@ def inference_settings(cfg: DictConfig) -> dict[str, int | str | None]:
     }
 
 
-def run_predict(cfg: DictConfig) -> None:
-    from .io import load_image, prepare_pair
-    from .registration import register
-
-    if not cfg.template or not cfg.source:
-        raise CliError("predict needs template=PATH and source=PATH")
-    device = _resolve_device(str(cfg.device))
-    template, source = load_image(cfg.template), load_image(cfg.source)
+def _pair_matcher(cfg: DictConfig, device: str) -> Callable[[Tensor, Tensor], Pose]:
+    """``predict``'s matcher of ``(B, C, H, W)`` pairs: the checkpoint's DPCN, or without
+    ``ckpt_path`` the classical estimator with the ``registration`` settings."""
     if cfg.ckpt_path:
         from .training.module import load_matcher
 
-        matcher = load_matcher(cfg.ckpt_path, device, **inference_settings(cfg))
-        t, s = prepare_pair(template, source, device)
-        pose = matcher.match(t, s)
-    else:
-        options = OmegaConf.to_container(cfg.registration, resolve=True)
-        pose = register(template, source, device=device, **options)
-    print(pose.to_json())
+        return load_matcher(cfg.ckpt_path, device, **inference_settings(cfg)).match
+    from .registration import register
+
+    options = OmegaConf.to_container(cfg.registration, resolve=True)
+    return lambda template, source: register(template, source, device=device, **options)
+
+
+def run_predict(cfg: DictConfig) -> None:
+    from .io import load_image, prepare_pair
+
+    if cfg.get("pairs"):
+        if cfg.template or cfg.source:
+            raise CliError("predict takes template=PATH and source=PATH, or pairs=CSV, not both")
+        _predict_pairs(cfg)
+        return
+    if not cfg.template or not cfg.source:
+        raise CliError("predict needs template=PATH and source=PATH (or pairs=CSV)")
+    device = _resolve_device(str(cfg.device))
+    template, source = load_image(cfg.template), load_image(cfg.source)
+    match = _pair_matcher(cfg, device)
+    print(match(*prepare_pair(template, source, device)).to_json())
+
+
+def _predict_pairs(cfg: DictConfig) -> None:
+    """``predict pairs=CSV``: the pose of every listed pair, as CSV rows ``name, tx, ty, angle,
+    scale, confidence`` in the CSV's order, on stdout or atomically into ``out=FILE``.
+    Consecutive pairs of one size are matched ``predict_batch_size`` at a time."""
+    import csv
+
+    import torch
+
+    from .data.aeroground import CsvPairs
+    from .io import DpcnInputError, load_image, prepare_pair
+
+    size = check_int("predict_batch_size", cfg.predict_batch_size, 1)
+    device = _resolve_device(str(cfg.device))
+    rows = CsvPairs(cfg.pairs, poses=False).rows  # names and image paths, checked up front
+    match = _pair_matcher(cfg, device)
+    out = Path(cfg.out) if cfg.out else None
+    if out is not None and not out.parent.is_dir():
+        raise CliError(f"out={out}: folder {out.parent} does not exist")
+    stream = io.StringIO() if out is not None else sys.stdout
+    writer = csv.writer(stream, lineterminator="\n")
+    writer.writerow(["name", "tx", "ty", "angle", "scale", "confidence"])
+    batch: list[tuple[str, Tensor, Tensor]] = []
+
+    def flush() -> None:
+        pose = match(torch.cat([t for _, t, _ in batch]), torch.cat([s for _, _, s in batch]))
+        for i, (name, _, _) in enumerate(batch):
+            values = pose[i].to_dict()
+            writer.writerow([name, *(f"{values[k]:.6g}" for k in ("tx", "ty", "angle", "scale", "confidence"))])
+        batch.clear()
+
+    for row in rows:
+        try:
+            template, source = prepare_pair(load_image(row["template"]), load_image(row["source"]), device)
+        except DpcnInputError as error:
+            raise CliError(f"{cfg.pairs}: pair {row['name']!r}: {error}") from None
+        if batch and (template.shape != batch[0][1].shape or source.shape != batch[0][2].shape):
+            flush()
+        batch.append((row["name"], template, source))
+        if len(batch) == size:
+            flush()
+    if batch:
+        flush()
+    if out is not None:  # written whole or not at all
+        partial = out.with_name(f".{out.name}.partial")
+        partial.write_text(stream.getvalue())
+        os.replace(partial, out)
+        print(f"poses of {len(rows)} pairs written to {out}", file=sys.stderr)
 
 
 def _run_dir() -> Path:

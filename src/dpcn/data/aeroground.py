@@ -630,6 +630,9 @@ class CsvPairs(Dataset):
     ``d = ((f - 1) / 2, (f - 1) / 2)`` (the half-pixel shift of OpenCV's pixel-centre
     mapping); angle and scale are unchanged. The resize must keep the aspect ratio.
     Template and source of a row must have the same size.
+
+    With ``poses=False`` the CSV needs only the ``name`` column (pairs whose pose is unknown,
+    e.g. for ``python -m dpcn predict pairs=...``); items then have no ``"pose"``.
     """
 
     REQUIRED = ("name", "rotation", "shift_x", "shift_y")
@@ -641,8 +644,12 @@ class CsvPairs(Dataset):
         source_dir: str | Path | None = None,
         size: int | tuple[int, int] | None = None,
         channels: int = 1,
+        poses: bool = True,
     ) -> None:
         self.csv_path = Path(csv_path)
+        self.poses = bool(poses)
+        required = self.REQUIRED if self.poses else ("name",)
+        expected = f"{', '.join(required)}[, scale]" if self.poses else "name"
         self.size = _check_size(size)
         self.channels = _check_channels(channels)
         if not self.csv_path.is_file():
@@ -659,17 +666,15 @@ class CsvPairs(Dataset):
                 reader = csv.reader(f)
                 header = next(reader, None)
                 if header is None:
-                    raise DataError(
-                        f"{self.csv_path}: empty file (expected a header {', '.join(self.REQUIRED)}[, scale])"
-                    )
+                    raise DataError(f"{self.csv_path}: empty file (expected a header {expected})")
                 cols = [c.strip().lower() for c in header]
-                missing = [c for c in self.REQUIRED if c not in cols]
+                missing = [c for c in required if c not in cols]
                 if missing:
                     raise DataError(
-                        f"{self.csv_path}: missing column(s) {missing}; header is "
-                        f"{header}; expected {', '.join(self.REQUIRED)}[, scale]"
+                        f"{self.csv_path}: missing column(s) {missing}; header is {header}; expected {expected}"
                     )
-                idx = {c: cols.index(c) for c in (*self.REQUIRED, "scale") if c in cols}
+                wanted = (*self.REQUIRED, "scale") if self.poses else ("name",)
+                idx = {c: cols.index(c) for c in wanted if c in cols}
                 row_no = 0
                 for row in reader:
                     if not row or all(not v.strip() for v in row):
@@ -691,7 +696,7 @@ class CsvPairs(Dataset):
         if not name:
             raise DataError(f"{where}: empty name")
         values = {}
-        for col in ("rotation", "shift_x", "shift_y", "scale"):
+        for col in ("rotation", "shift_x", "shift_y", "scale") if self.poses else ():
             if col not in idx:
                 values[col] = 1.0
                 continue
@@ -703,7 +708,7 @@ class CsvPairs(Dataset):
             if not math.isfinite(v):
                 raise DataError(f"{where}: {col} = {text!r} is not finite")
             values[col] = v
-        if values["scale"] <= 0:
+        if values.get("scale", 1.0) <= 0:
             raise DataError(f"{where}: scale = {values['scale']} must be > 0")
         paths = {}
         for what, folder in (("template", self.template_dir), ("source", self.source_dir)):
@@ -729,8 +734,8 @@ class CsvPairs(Dataset):
                 f"{template.shape[1]}x{template.shape[0]} (WxH) but source "
                 f"{row['source']} is {source.shape[1]}x{source.shape[0]}"
             )
-        tx, ty = row["shift_x"], row["shift_y"]
-        angle, sc = row["rotation"], row["scale"]
+        tx, ty = row.get("shift_x", 0.0), row.get("shift_y", 0.0)
+        angle, sc = row.get("rotation", 0.0), row.get("scale", 1.0)
         mask = np.ones(template.shape[:2], np.float32) if talpha is None else talpha.astype(np.float32)
         hs, ws = template.shape[:2]
         if self.size is not None and self.size != (hs, ws):
@@ -752,9 +757,12 @@ class CsvPairs(Dataset):
             # (I - sR) d with sR = [[a, b], [-b, a]] as in pose_to_matrix.
             tx = fx * tx + (1 - a) * dx - b * dy
             ty = fy * ty + b * dx + (1 - a) * dy
-        return {
+        item = {
             "template": _to_tensor(template, self.channels),
             "source": _to_tensor(source, self.channels),
             "pose": torch.tensor([tx, ty, angle, sc], dtype=torch.float32),
             "template_mask": torch.from_numpy(np.ascontiguousarray(mask, np.float32))[None],
         }
+        if not self.poses:
+            del item["pose"]
+        return item
