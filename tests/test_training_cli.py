@@ -357,6 +357,19 @@ def test_validate_and_test_print_the_paper_table(trained, tmp_path):
     out = dpcn("validate", *SMALL_DATA, "model=classical", f"hydra.run.dir={tmp_path / 'v'}", cwd=tmp_path)
     assert "classical on sim_heterogeneous" in out.stdout
     assert (tmp_path / "v" / "metrics_validate.csv").is_file()
+    # Every pair's truth, estimate, confidence and errors, which give the table's numbers.
+    with (tmp_path / "v" / "pairs_validate.csv").open() as f:
+        pairs = list(csv.DictReader(f))
+    with (tmp_path / "v" / "metrics_validate.csv").open() as f:
+        table = next(csv.DictReader(f))
+    assert [int(p["pair"]) for p in pairs] == list(range(4)) and float(table["n"]) == 4
+    checks = [("acc_x@5", "err_x", 5.0), ("acc_rot@1", "err_rot", 1.0), ("acc_scale@0.2", "err_scale", 0.2)]
+    for key, column, limit in checks:
+        assert float(table[key]) == pytest.approx(100 * sum(float(p[column]) <= limit for p in pairs) / 4)
+    assert float(table["mse_y"]) == pytest.approx(sum(float(p["err_y"]) ** 2 for p in pairs) / 4, rel=1e-4)
+    first = pairs[0]
+    assert float(first["err_x"]) == pytest.approx(abs(float(first["pred_tx"]) - float(first["tx"])), abs=1e-4)
+    assert 0 < float(first["confidence"]) <= 1
     # Lightning's adverts and its warning about its own code stay out of the output.
     assert "Tip:" not in out.stderr + out.stdout and "LeafSpec" not in out.stderr, out.stderr
 
@@ -480,6 +493,20 @@ def test_ddp_with_two_cpu_processes(tmp_path):
     ckpt = torch.load(tmp_path / "ddp/checkpoints/last.ckpt", weights_only=False)
     # 8 pairs per epoch, batch 4, split over 2 ranks: one optimiser step per rank
     assert ckpt["global_step"] == 1
+
+
+def test_an_evaluation_split_over_ranks_counts_every_pair_once(tmp_path):
+    """9 test pairs over 2 DDP ranks (5 and 4): the same per-pair table, in data-set order,
+    and the same metrics as one process; no pair counted twice or read from padding."""
+    args = [*SMALL_DATA, "model=classical", "data.test_length=9"]
+    dpcn("test", *args, f"hydra.run.dir={tmp_path / 'one'}", cwd=tmp_path)
+    ddp = ["trainer=ddp", "trainer.accelerator=cpu", "trainer.devices=2"]
+    dpcn("test", *args, *ddp, f"hydra.run.dir={tmp_path / 'two'}", cwd=tmp_path)
+    one, two = (tmp_path / run / "pairs_test.csv" for run in ("one", "two"))
+    assert len(one.read_text().splitlines()) == 10  # the header and 9 pairs
+    assert two.read_text() == one.read_text()
+    metrics = [(tmp_path / run / "metrics_test.csv").read_text() for run in ("one", "two")]
+    assert metrics[0] == metrics[1]
 
 
 @pytest.mark.parametrize(

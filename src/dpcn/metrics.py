@@ -13,9 +13,23 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-__all__ = ["COMPONENTS", "pose_errors", "summarize", "format_table", "write_csv", "thresholds_for"]
+__all__ = [
+    "COMPONENTS",
+    "PAIR_COLUMNS",
+    "pose_errors",
+    "summarize",
+    "format_table",
+    "write_csv",
+    "write_pairs_csv",
+    "thresholds_for",
+]
 
 COMPONENTS = ("x", "y", "rot", "scale")
+# One evaluated pair: the true pose, the estimate, its confidence and the errors (pixels, degrees).
+PAIR_COLUMNS = (
+    "pair", "tx", "ty", "angle", "scale", "pred_tx", "pred_ty", "pred_angle", "pred_scale",
+    "confidence", "err_x", "err_y", "err_rot", "err_scale",
+)  # fmt: skip
 
 
 def thresholds_for(translation_px: float = 5.0) -> dict[str, dict[str, float]]:
@@ -70,4 +84,22 @@ def write_csv(path: str | Path, rows: Sequence[tuple[str, Mapping[str, float]]])
         writer.writerow(["name", *keys])
         for name, metrics in rows:
             writer.writerow([name, *(metrics[k] for k in keys)])
+    return path
+
+
+def write_pairs_csv(path: str | Path, truth: Tensor, prediction: Tensor, confidence: Tensor | None) -> Path:
+    """Every evaluated pair as a row of :data:`PAIR_COLUMNS`: ``(N, 4)`` true and estimated
+    ``(tx, ty, angle, scale)`` poses, ``(N,)`` confidences (empty cells without), and their
+    :func:`pose_errors`; ``pair`` is the index in the data set. For accuracy at any
+    threshold, and for looking at the misses."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    errors = pose_errors(prediction, truth)
+    with path.open("w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(PAIR_COLUMNS)
+        for i in range(truth.shape[0]):
+            conf = "" if confidence is None else f"{float(confidence[i]):.6g}"
+            values = [*truth[i].tolist(), *prediction[i].tolist()]
+            writer.writerow([i, *(f"{v:.6g}" for v in values), conf, *(f"{v:.6g}" for v in errors[i].tolist())])
     return path

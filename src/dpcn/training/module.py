@@ -13,7 +13,7 @@ from torch import Tensor
 from .._validate import check_int, check_number
 from ..estimator import PhaseCorrelationEstimator, estimate_translation, unwarp_rotation_scale
 from ..io import prepare_pair
-from ..metrics import format_table, pose_errors, summarize, thresholds_for, write_csv
+from ..metrics import format_table, pose_errors, summarize, thresholds_for, write_csv, write_pairs_csv
 from ..models.dpcn import DPCN, PHASE_UNETS
 from ..ops._checks import inputs_checked
 from ..pose import Pose, wrap_angle
@@ -58,34 +58,58 @@ class _EvaluationMixin:
     translation_threshold: float
 
     def _reset(self) -> None:
-        self._errors: list[Tensor] = []
+        self._records: list[Tensor] = []
 
     def _evaluate_batch(self, batch: dict[str, Tensor]) -> Tensor:
         pose = self.match(batch["template"], batch["source"])
-        errors = pose_errors(pose.as_tensor().to(batch["pose"].device), batch["pose"])
-        self._errors.append(errors.detach())
-        return errors
+        estimate = pose.as_tensor().to(batch["pose"].device).double()
+        confidence = pose.confidence if pose.confidence is not None else torch.full_like(estimate[:, 0], float("nan"))
+        truth = batch["pose"].double()
+        # (B, 9): the true pose, the estimate and its confidence, kept for the per-pair table.
+        self._records.append(torch.cat([truth, estimate, confidence.to(estimate).reshape(-1, 1)], dim=1).detach())
+        return pose_errors(estimate, truth)
+
+    def _gathered_records(self) -> Tensor:
+        """``(N, 9)`` records of the epoch in data-set order, gathered over DDP ranks.
+
+        Lightning splits an evaluation set over ranks without repeats: rank ``r`` gets the
+        pairs ``r, r + world, ...``, so ranks may hold one pair fewer. ``all_gather`` needs
+        equal shapes, so each rank pads to the longest with NaN rows, dropped after the
+        ranks are interleaved back into data-set order."""
+        records = torch.cat(self._records) if self._records else torch.zeros(0, 9, dtype=torch.float64)
+        world = self.trainer.world_size if self._trainer is not None else 1
+        if world > 1:
+            longest = int(self.all_gather(torch.tensor(records.shape[0], device=self.device)).max())
+            padding = records.new_full((longest - records.shape[0], 9), float("nan"))
+            gathered = self.all_gather(torch.cat([records, padding]))  # (world, longest, 9)
+            records = gathered.transpose(0, 1).reshape(-1, 9)
+            records = records[~torch.isnan(records[:, 0])]
+        return records.cpu()
 
     def _finish(self, stage: str) -> dict[str, float]:
-        errors = torch.cat(self._errors) if self._errors else torch.zeros(0, 4, dtype=torch.float64)
-        if self.trainer is not None and self.trainer.world_size > 1:
-            errors = self.all_gather(errors).reshape(-1, 4)
+        records = self._gathered_records()
+        errors = pose_errors(records[:, 4:8], records[:, :4])
         thresholds = thresholds_for(self.translation_threshold)
-        metrics = summarize(errors.cpu(), thresholds) if len(errors) else {}
+        metrics = summarize(errors, thresholds) if len(errors) else {}
         for key, value in metrics.items():
             if key != "n":
                 self.log(f"{stage}/{key}", value, sync_dist=False, rank_zero_only=True)
         self.last_metrics = metrics
+        self.last_records = records
         self._reset()
         return metrics
 
     def report(self, stage: str, name: str, out_dir: str | Path | None) -> str:
-        """Table of the last metrics; also written as ``metrics_<stage>.csv`` in ``out_dir``."""
+        """Table of the last metrics; also written as ``metrics_<stage>.csv`` in ``out_dir``,
+        beside ``pairs_<stage>.csv``, every pair's truth, estimate, confidence and errors."""
         if not getattr(self, "last_metrics", None):
             return ""
         rows = [(name, self.last_metrics)]
         if out_dir is not None:
             write_csv(Path(out_dir) / f"metrics_{stage}.csv", rows)
+            records = self.last_records
+            confidence = None if torch.isnan(records[:, 8]).all() else records[:, 8]
+            write_pairs_csv(Path(out_dir) / f"pairs_{stage}.csv", records[:, :4], records[:, 4:8], confidence)
         return format_table(rows)
 
 
