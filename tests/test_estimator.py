@@ -8,10 +8,13 @@ from torch.autograd import gradcheck
 from dpcn.estimator import (
     DIHEDRAL_VIEWS,
     PhaseCorrelationEstimator,
+    check_rotation_range,
+    choose_half_turn,
     dihedral_views,
     estimate_rotation_scale,
     estimate_translation,
     log_polar_correlation,
+    outside_rotation_range,
     unwarp_rotation_scale,
     window_grid_shifts,
 )
@@ -399,3 +402,74 @@ def test_gradcheck_decoupled_rotation_scale_stage():
     options = dict(n_angles=16, n_radii=12, window=2, correlation="decoupled")
     fn = lambda x, y: torch.stack([(r := estimate_rotation_scale(x, y, **options)).angle, r.scale])  # noqa: E731
     assert gradcheck(fn, (a, b), eps=1e-6, atol=1e-4)
+
+
+# ----------------------------------------------------------------------------- a known range of rotations
+
+
+def _outside_reference(angle: float, low: float, high: float) -> float:
+    """Degrees from ``angle`` to the arc [low, high]: the nearest of 3601 points along it."""
+    arc = np.linspace(low, high, 3601)
+    return float(np.abs((angle - arc + 180.0) % 360.0 - 180.0).min())
+
+
+def test_outside_rotation_range_against_a_brute_force_reference():
+    angles = torch.tensor(
+        [-179.0, -120.0, -91.0, -10.0, 0.0, 45.0, 100.0, 179.5, 185.0, 200.0, 300.0], dtype=torch.float64
+    )
+    for low, high in [(0.0, 180.0), (-90.0, 90.0), (170.0, 190.0), (100.0, 120.0), (-180.0, 180.0), (30.0, 300.0)]:
+        got = outside_rotation_range(angles, (low, high))
+        want = [_outside_reference(float(a), low, high) for a in angles]
+        np.testing.assert_allclose(got.numpy(), want, atol=0.06, err_msg=f"[{low}, {high}]")
+
+
+def test_choose_half_turn_by_the_range_or_by_the_scores():
+    angle = torch.tensor([30.0, 150.0, -100.0])
+    up, turned = torch.tensor([0.9, 0.2, 0.5]), torch.tensor([0.1, 0.8, 0.6])
+    assert choose_half_turn(angle, None, up, turned).tolist() == [False, True, True]
+    # At most a half-turn wide: the range alone decides, whatever the scores say.
+    assert choose_half_turn(angle, (90.0, 270.0)).tolist() == [True, False, False]
+    assert choose_half_turn(angle, (90.0, 270.0), up, turned).tolist() == [True, False, False]
+    assert choose_half_turn(angle, (-30.0, 40.0)).tolist() == [False, True, True]  # narrower: the nearer turn
+    # Wider: the turn inside where only one is; the scores where both are (-100 and 80 here).
+    assert choose_half_turn(angle, (-100.0, 140.0), up, turned).tolist() == [False, True, True]
+    assert choose_half_turn(angle, (-180.0, 180.0), up, turned).tolist() == [False, True, True]
+    with pytest.raises(ValueError, match="needs a rotation_range or both scores"):
+        choose_half_turn(angle, None)
+
+
+@pytest.mark.parametrize("bad", [[0, 0], [10, 5], [0, 361], [0], [0, 90, 180], "0,180", [0, float("nan")], [True, 90]])
+def test_rotation_range_rejects_bad_values(bad):
+    with pytest.raises(ValueError, match=r"rotation_range must be \[low, high\] in degrees with 0 < high - low <= 360"):
+        check_rotation_range(bad)
+    with pytest.raises(ValueError, match="rotation_range must be"):
+        PhaseCorrelationEstimator(rotation_range=bad)
+
+
+def test_a_known_range_settles_the_half_turn_of_opencv_poses():
+    """The classical estimator with a range of half a turn returns the pose inside it: the
+    true one when the range holds it, the other turn (same axis) when it does not."""
+    template = photo("camera")
+    truth = (8.0, -4.0, 141.0, 0.95)
+    source = cv2_warp(template, *truth)
+    for known in ([0.0, 180.0], [90.0, 270.0], [100.0, 200.0], [-180.0, 180.0], [120.0, 330.0]):
+        pose = recover(template, source, rotation_range=known)
+        assert angle_error(pose.angle, 141.0) < 0.3, known
+        assert float(pose.tx) == pytest.approx(8.0, abs=0.5) and float(pose.ty) == pytest.approx(-4.0, abs=0.5)
+    wrong = recover(template, source, rotation_range=[-90.0, 90.0])
+    assert angle_error(wrong.angle, -39.0) < 0.3
+    # Without the check (resolve_180=False) the range still picks the turn.
+    limited = recover(template, source, resolve_180=False, rotation_range=[0.0, 180.0])
+    assert angle_error(limited.angle, 141.0) < 0.3
+
+
+def test_gradcheck_translation_stage_with_a_known_range():
+    a, b = _small_images()
+    angle = torch.tensor([12.0], dtype=torch.float64, requires_grad=True)
+    scale = torch.tensor([1.05], dtype=torch.float64, requires_grad=True)
+
+    def fn(x, y, ang, sc):
+        tr = estimate_translation(x, unwarp_rotation_scale(y, ang, sc), ang, sc, window=2, rotation_range=(90.0, 270.0))
+        return torch.stack([tr.tx, tr.ty, tr.angle])
+
+    assert gradcheck(fn, (a, b, angle, scale), eps=1e-6, atol=1e-4)

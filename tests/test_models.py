@@ -548,3 +548,40 @@ def test_gradcheck_end_to_end_with_decoupled_phase1():
     t = torch.rand(1, 1, 16, 16, dtype=torch.float64, requires_grad=True)
     s = torch.rand(1, 1, 16, 16, dtype=torch.float64, requires_grad=True)
     assert gradcheck(lambda a, b: model(a, b).pose.as_tensor(), (t, s), eps=1e-6, atol=1e-4)
+
+
+def test_a_known_rotation_range_settles_the_half_turn_with_one_phase2_pass():
+    """With a range of half a turn phase 2 runs once per candidate (not twice) and the pose
+    is the turn inside the range; a wider range only rules turns out; both on an OpenCV pose
+    (input_skip: an untrained DPCN is phase correlation on softplus images)."""
+    torch.manual_seed(0)
+    image = photo("camera", (128, 128))
+    template = torch.from_numpy(image)[None, None].repeat(2, 1, 1, 1)
+    truths = [(6.0, -4.0, 145.0, 1.05), (-5.0, 3.0, -40.0, 0.95)]
+    source = torch.cat([torch.from_numpy(cv2_warp(image, *t))[None, None] for t in truths])
+    model = DPCN(base_channels=2, depth=1, input_skip=True, image_size=(128, 128)).eval()
+    passes = []
+    model.t_source.register_forward_hook(lambda module, args, out: passes.append(args[0].shape[0]))
+    cases = [  # (range, phase-2 source images for 2 pairs, the angles returned)
+        (None, 4, (145.0, -40.0)),
+        ([-180.0, 180.0], 4, (145.0, -40.0)),  # the full circle: no prior
+        ([90.0, 270.0], 2, (145.0, 140.0)),  # half a turn: the range decides, one pass
+        ([-90.0, 90.0], 2, (-35.0, -40.0)),
+        ([-60.0, 200.0], 4, (145.0, -40.0)),  # wider: both turns inside, phase 2 decides
+        ([20.0, 260.0], 4, (145.0, 140.0)),  # wider: -40 is outside, so its other turn
+    ]
+    for known, images, angles in cases:
+        passes.clear()
+        model.rotation_range = known
+        with torch.no_grad():
+            pose = model.match(template, source)
+        assert passes == [images], (known, passes)  # the source U-Net of phase 2: B or 2 B images
+        for got, want in zip(pose.angle, angles, strict=True):
+            assert angle_error(got, want) < 0.5, (known, pose.angle)
+        if angles[0] == 145.0:
+            assert abs(float(pose.tx[0]) - 6.0) < 1.0 and abs(float(pose.ty[0]) + 4.0) < 1.0
+    assert model.rotation_range == (20.0, 260.0)
+    with pytest.raises(ValueError, match=r"rotation_range must be \[low, high\] in degrees"):
+        model.rotation_range = [0.0, 400.0]
+    with pytest.raises(ValueError, match=r"rotation_range must be \[low, high\] in degrees"):
+        small_dpcn(rotation_range=[5.0])

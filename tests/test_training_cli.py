@@ -350,6 +350,7 @@ def test_validate_and_test_print_the_paper_table(trained, tmp_path):
         ("unet_dtype=float16", "unet_dtype must be one of float32, bfloat16, got 'float16'"),
         ("inference_radii=1", "inference_radii must be an integer >= 2 or None, got 1"),
         ("inference_radii=all", "inference_radii must be an integer >= 2 or 'trained', got 'all'"),
+        ("rotation_range=[180,0]", "rotation_range must be [low, high] in degrees with 0 < high - low <= 360"),
     ]:
         run = tmp_path / setting.split("=")[0]
         bad = dpcn("test", *SMALL, f"ckpt_path={ckpt}", setting, f"hydra.run.dir={run}", cwd=tmp_path, check=False)
@@ -447,6 +448,8 @@ def test_predict_with_a_checkpoint(trained, tmp_path):
         (["fit", "init_from=foreign.ckpt"], "not a Lightning checkpoint of a dpcn model"),
         (["fit", "model.freeze=[rotation]"], "model.freeze takes a list of rotation_scale, translation"),
         (["fit", "model.net.rotation_scale_correlation=1d"], "rotation_scale_correlation must be one of joint"),
+        (["fit", "model.net.rotation_range=[0,400]"], "rotation_range must be [low, high] in degrees with 0 < high"),
+        (["test", "model=classical", "registration.rotation_range=[90]"], "rotation_range must be [low, high] in"),
         (["fit", "trainer.precision=bf32"], "trainer.precision must be auto or one of Lightning's 32-true, bf16-mixed"),
     ],
 )

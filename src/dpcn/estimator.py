@@ -35,6 +35,9 @@ __all__ = [
     "window_grid_shifts",
     "dihedral_views",
     "DIHEDRAL_VIEWS",
+    "check_rotation_range",
+    "outside_rotation_range",
+    "choose_half_turn",
     "ROTATION_SCALE_CORRELATIONS",
     "log_polar_correlation",
     "PhaseCorrelationEstimator",
@@ -192,6 +195,54 @@ def check_views(views: int, size: Sequence[int] | None = None) -> int:
     return views
 
 
+def check_rotation_range(rotation_range: object) -> tuple[float, float] | None:
+    """Validate a known range of rotations ``[low, high]`` in degrees (the pose convention's
+    angle): two finite numbers with ``0 < high - low <= 360``; ``None`` (no prior) passes."""
+    if rotation_range is None:
+        return None
+    ok = isinstance(rotation_range, Sequence) and not isinstance(rotation_range, str) and len(rotation_range) == 2
+    values = list(rotation_range) if ok else []
+    ok = ok and all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in values)
+    if not ok or not 0 < values[1] - values[0] <= 360:
+        raise ValueError(
+            f"rotation_range must be [low, high] in degrees with 0 < high - low <= 360, got {rotation_range!r}"
+        )
+    return float(values[0]), float(values[1])
+
+
+def outside_rotation_range(angle: Tensor, rotation_range: tuple[float, float]) -> Tensor:
+    """Degrees by which each ``angle`` lies outside ``rotation_range`` (0 inside; circular)."""
+    low, high = rotation_range
+    past_low = torch.remainder(angle - low, 360.0)  # [0, 360): how far round from low
+    beyond = past_low - (high - low)
+    return torch.where(beyond <= 0, torch.zeros_like(angle), torch.minimum(beyond, 360.0 - past_low))
+
+
+def choose_half_turn(
+    angle: Tensor,
+    rotation_range: tuple[float, float] | None,
+    upright_score: Tensor | None = None,
+    turned_score: Tensor | None = None,
+) -> Tensor:
+    """Whether each pose is ``angle + 180`` rather than ``angle``: ``(B,)`` bool.
+
+    Phase correlation of magnitude spectra finds the rotation modulo a half-turn. Without a
+    known range the correlation peaks decide (``turned_score > upright_score``). A range of
+    at most 180 degrees decides alone: the turn inside it (or, for a narrower range, the
+    nearer to it), so no check is needed. A wider one decides where only one turn is inside
+    and leaves the rest to the scores.
+    """
+    if rotation_range is None:
+        if upright_score is None or turned_score is None:
+            raise ValueError("choose_half_turn needs a rotation_range or both scores")
+        return turned_score > upright_score
+    up = outside_rotation_range(angle, rotation_range)
+    turned = outside_rotation_range(angle + 180.0, rotation_range)
+    if upright_score is None or turned_score is None:
+        return turned < up
+    return torch.where(up == turned, turned_score > upright_score, turned < up)
+
+
 def _merge_views(surface: Tensor, views: int) -> Tensor:
     """Average ``(views * B, A, R)`` log-polar surfaces of dihedral views on the first view's
     angle axis: ``(B, A, R)``. A mirror negates the rotation: row ``r`` -> ``(A - r) mod A``."""
@@ -329,6 +380,7 @@ def estimate_translation(
     temperature: float | Tensor = 0.1,
     window: int | None = 3,
     relative: bool = True,
+    rotation_range: tuple[float, float] | None = None,
 ) -> Translation:
     """Translation of the source, from the template and the un-rotated/un-scaled source.
 
@@ -341,6 +393,9 @@ def estimate_translation(
             about the centre conjugates its spectrum, so this costs one extra inverse DFT,
             no warp and no extra features.
         apodize: Hann-window both inputs first.
+        rotation_range: a known range of the rotation, ``[low, high]`` degrees: the half-turn
+            inside it wins (:func:`choose_half_turn`; decided by the range alone when it
+            spans at most 180 degrees, also without ``resolve_180``). ``None``: no prior.
 
     Returns:
         :class:`Translation` in the project's pose convention.
@@ -357,11 +412,12 @@ def estimate_translation(
     cross = (fb * fa.conj()).sum(dim=1)
     surface = correlation_surface(cross, (height, width), sigma=sigma)
     angle = angle.to(surface.dtype)
-    if resolve_180:
+    if resolve_180 or rotation_range is not None:
         # The half-turn hypothesis: b rotated by 180 degrees about (W/2, H/2) is b(-p)
         # circularly, whose DFT is conj(B); no second warp, DFT or feature pass is needed.
         mirrored = correlation_surface((fb * fa).conj().sum(dim=1), (height, width), sigma=sigma)
-        take_mirror = mirrored.flatten(1).max(dim=1).values > surface.flatten(1).max(dim=1).values
+        scores = (surface.flatten(1).max(dim=1).values, mirrored.flatten(1).max(dim=1).values)
+        take_mirror = choose_half_turn(angle, rotation_range, *(scores if resolve_180 else (None, None)))
         surface = torch.where(take_mirror[:, None, None], mirrored, surface)
         angle = torch.where(take_mirror, angle + 180.0, angle)
     peak = soft_argmax2d(surface, temperature, window=window, circular=(True, True), relative=relative)
@@ -402,6 +458,9 @@ class PhaseCorrelationEstimator(nn.Module):
             per log-polar bin counting (:func:`window_grid_shifts`); ``1``: centred only.
         rotation_scale_correlation: ``joint`` (the paper's 2-D log-polar phase correlation)
             or ``decoupled`` (DPCN++'s 1-D correlations; :func:`log_polar_correlation`).
+        rotation_range: a known range of the rotation, ``[low, high]`` degrees (a heading
+            prior, or the paper's ``[0, 180]``); it settles the half-turn (see
+            :func:`estimate_translation`). ``None``: the full circle.
     """
 
     def __init__(
@@ -422,6 +481,7 @@ class PhaseCorrelationEstimator(nn.Module):
         spectrum_window_grid: int = 1,
         spectrum_window_step: float = 0.125,
         rotation_scale_correlation: str = "joint",
+        rotation_range: tuple[float, float] | None = None,
     ) -> None:
         super().__init__()
         log_polar_grid(8, 8, n_angles, n_radii, min_radius, max_radius)  # validates the grid
@@ -450,7 +510,12 @@ class PhaseCorrelationEstimator(nn.Module):
             correlation=rotation_scale_correlation,
         )
         self.translation_options = dict(
-            resolve_180=resolve_180, sigma=sigma, temperature=temperature, window=window, relative=True
+            resolve_180=resolve_180,
+            sigma=sigma,
+            temperature=temperature,
+            window=window,
+            relative=True,
+            rotation_range=check_rotation_range(rotation_range),
         )
         if refine < 0:
             raise ValueError(f"refine must be >= 0, got {refine}")

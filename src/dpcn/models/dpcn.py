@@ -35,11 +35,14 @@ from .._validate import check_int, check_ints, check_number, check_sequence
 from ..estimator import (
     RotationScale,
     Translation,
+    check_rotation_range,
     check_rotation_scale_correlation,
     check_views,
+    choose_half_turn,
     dihedral_views,
     estimate_rotation_scale,
     estimate_translation,
+    outside_rotation_range,
     unwarp_rotation_scale,
     window_grid_shifts,
 )
@@ -157,6 +160,11 @@ class DPCN(nn.Module):
             correlations of their angle and log-radius profiles, rotation and scale each
             found whatever the other; see :func:`~dpcn.estimator.log_polar_correlation`).
             Training and inference both use it.
+        rotation_range: inference only: a known range of the rotation, ``[low, high]``
+            degrees (a heading prior; the paper's data: ``[0, 180]``). A range of at most 180
+            degrees settles the half-turn that phase 1 leaves open, so phase 2 runs once
+            instead of twice per candidate; a wider one only rules out turns outside it.
+            ``None``: the full circle, phase 2 decides (settable on a loaded model).
     """
 
     def __init__(
@@ -194,6 +202,7 @@ class DPCN(nn.Module):
         inference_radii: int | None = None,
         template_relief: float | None = None,
         rotation_scale_correlation: str = "joint",
+        rotation_range: tuple[float, float] | list[float] | None = None,
     ) -> None:
         super().__init__()
         # Config values by name (they may arrive as strings from the command line).
@@ -263,6 +272,7 @@ class DPCN(nn.Module):
         self.spectrum_window_step = float(spectrum_window_step)
         self.rotation_views = rotation_views
         self.inference_radii = inference_radii
+        self.rotation_range = rotation_range
         if isinstance(train_temperature, (int, float, str)):
             train_temperature = (train_temperature, train_temperature)
         check_sequence("train_temperature", train_temperature, 2, "one number or two")
@@ -316,6 +326,15 @@ class DPCN(nn.Module):
             if isinstance(value, bool) or not isinstance(value, int) or value < 2:
                 raise ValueError(f"inference_radii must be an integer >= 2 or None, got {value!r}")
         self._inference_radii = value
+
+    @property
+    def rotation_range(self) -> tuple[float, float] | None:
+        """The known range of rotations ``[low, high]`` (degrees) used at inference, or ``None``."""
+        return self._rotation_range
+
+    @rotation_range.setter
+    def rotation_range(self, value: tuple[float, float] | list[float] | None) -> None:
+        self._rotation_range = check_rotation_range(value)
 
     @property
     def unet_dtype(self) -> str:
@@ -500,6 +519,7 @@ class DPCN(nn.Module):
         scale: Tensor,
         resolve_180: bool = True,
         valid: Tensor | None = None,
+        rotation_range: tuple[float, float] | None = None,
     ) -> tuple[Translation, dict[str, Tensor], Tensor]:
         """Phase 2 on sources already un-warped by ``angle``/``scale``; the strongest
         translation peak over the candidates wins.
@@ -511,6 +531,8 @@ class DPCN(nn.Module):
             resolve_180: also try each candidate turned by half a turn (one more source U-Net
                 pass, batched with the first); the angle of the winner says which.
             valid: ``(B, K)`` candidates allowed to win (``None``: all).
+            rotation_range: with ``resolve_180``, a turn whose angle lies further outside this
+                range than the other turn's cannot win.
 
         Returns:
             the winning :class:`Translation` ``(B,)``, the phase-2 features of the winner, and
@@ -526,8 +548,14 @@ class DPCN(nn.Module):
             return torch.stack([v.view(batch, k, *v.shape[1:]) for v in values], dim=2).flatten(1, 2)
 
         confidence = candidates([r.confidence for r in results])
-        if valid is not None:
-            confidence = confidence.masked_fill(~valid.repeat_interleave(len(results), dim=1), -torch.inf)
+        allowed = None if valid is None else valid.repeat_interleave(len(results), dim=1)
+        if rotation_range is not None and len(results) == 2:
+            upright, turned = (outside_rotation_range(r.angle, rotation_range) for r in results)
+            nearest = torch.minimum(upright, turned)
+            turn_ok = candidates([upright == nearest, turned == nearest])
+            allowed = turn_ok if allowed is None else allowed & turn_ok
+        if allowed is not None:
+            confidence = confidence.masked_fill(~allowed, -torch.inf)
         choice = confidence.argmax(dim=1)
         rows = torch.arange(batch, device=choice.device)
 
@@ -556,10 +584,16 @@ class DPCN(nn.Module):
                 template, source, k, self.spectrum_window_grid, self.rotation_views, radii=self.inference_radii
             )
             angle, scale = rs.candidate_angle.flatten(), rs.candidate_scale.flatten()  # (B * K,)
+            known = self.rotation_range
+            settled = known is not None and known[1] - known[0] <= 180.0
+            if settled:  # the range picks the half-turn: phase 2 runs on that one alone
+                angle = angle + 180.0 * choose_half_turn(angle, known).to(angle.dtype)
             candidates = source.repeat_interleave(k, dim=0) if k > 1 else source
             unwarped = unwarp_rotation_scale(candidates, angle, scale)
             valid = torch.isfinite(rs.candidate_score)
-            tr, t_features, choice = self.translation(template, unwarped, angle, scale, valid=valid)
+            tr, t_features, choice = self.translation(
+                template, unwarped, angle, scale, resolve_180=not settled, valid=valid, rotation_range=known
+            )
         rows = torch.arange(template.shape[0], device=choice.device)
         scale = rs.candidate_scale[rows, choice]
         unwarped = unwarped.view(-1, k, *unwarped.shape[1:])[rows, choice]

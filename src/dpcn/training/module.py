@@ -385,12 +385,14 @@ def load_matcher(
     rotation_views: int | None = None,
     unet_dtype: str | None = None,
     inference_radii: int | str | None = None,
+    rotation_range: tuple[float, float] | list[float] | None = None,
 ) -> DPCNModule:
     """Load a DPCN checkpoint ready for ``.match(template, source) -> Pose`` (eval mode).
 
-    ``rotation_hypotheses``, ``spectrum_window_grid``, ``rotation_views``, ``unet_dtype`` and
-    ``inference_radii`` replace the checkpoint's inference settings of those names (see :class:`~dpcn.models.DPCN`);
-    ``None`` keeps them. ``inference_radii="trained"`` infers with the radii the model was
+    ``rotation_hypotheses``, ``spectrum_window_grid``, ``rotation_views``, ``unet_dtype``,
+    ``inference_radii`` and ``rotation_range`` replace the checkpoint's inference settings of
+    those names (see :class:`~dpcn.models.DPCN`); ``None`` keeps them (``rotation_range=[-180,
+    180]`` is the full circle, no prior). ``inference_radii="trained"`` infers with the radii the model was
     trained with (``n_radii``), whatever the checkpoint stores.
     Raises :class:`CheckpointError` naming the problem for a missing, corrupt or foreign file.
     """
@@ -409,6 +411,7 @@ def load_matcher(
         "rotation_views": rotation_views,
         "unet_dtype": unet_dtype,
         "inference_radii": inference_radii,
+        "rotation_range": rotation_range,
     }
     for name, value in settings.items():
         if value is not None:  # DPCN's setters validate; inference_radii None is the trained n_radii
