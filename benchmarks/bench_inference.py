@@ -11,6 +11,7 @@ the cost does not depend on them.
         [--window-grids 1,3] [--hypotheses 1,3] [--views 1,2,8]   # also time other stage-1 inference settings
         [--radii 128,256]                                         # DPCN.inference_radii
         [--unet-dtype bfloat16]                                   # DPCN.unet_dtype
+        [--rotation-range 0,180]                                  # also with DPCN.rotation_range (one phase-2 pass)
 """
 
 from __future__ import annotations
@@ -93,6 +94,15 @@ def positive_int(text: str) -> int:
     return value
 
 
+def float_pair(text: str) -> tuple[float, float]:
+    """``"0,180"`` -> ``(0.0, 180.0)`` (an argparse type)."""
+    try:
+        low, high = (float(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected LOW,HIGH, got {text!r}") from None
+    return low, high
+
+
 def int_list(text: str) -> list[int]:
     """argparse type: comma-separated integers (each setting's own check comes later)."""
     try:
@@ -118,6 +128,12 @@ def main(argv: list[str] | None = None) -> None:
     )
     parser.add_argument("--views", type=int_list, default=None, help="comma-separated rotation_views values to time")
     parser.add_argument("--radii", type=int_list, default=None, help="comma-separated inference_radii values to time")
+    parser.add_argument(
+        "--rotation-range",
+        type=float_pair,
+        default=None,
+        help="LOW,HIGH degrees: also time each DPCN with this rotation_range (<= 180 wide: one phase-2 pass)",
+    )
     parser.add_argument("--bf16", action="store_true", help="autocast the U-Nets to bfloat16 (GPU)")
     parser.add_argument("--unet-dtype", choices=UNET_DTYPES, default=None, help="DPCN.unet_dtype of the timed models")
     args = parser.parse_args(argv)
@@ -139,6 +155,7 @@ def main(argv: list[str] | None = None) -> None:
         ("rotation_hypotheses", args.hypotheses, "K"),
         ("rotation_views", args.views, "views"),
         ("inference_radii", args.radii, "radii"),
+        ("rotation_range", args.rotation_range and [None, args.rotation_range], "range"),
     ):
         if values:  # one copy per value, same weights
             for label, model in list(models.items()):

@@ -40,12 +40,24 @@ def test_prints_one_row_per_variant_and_the_classical_estimator(bench, capsys):
     assert all(line[:params_end].endswith(row[1]) for line, row in zip(lines[2:], rows, strict=True))
 
 
+def test_a_rotation_range_adds_a_variant_per_model(bench, capsys):
+    bench.main(["--presets", "tiny", "--size", "64", "--batch", "2", "--rounds", "1", "--rotation-range", "0,180"])
+    lines = capsys.readouterr().out.splitlines()
+    labels = [re.split(r"\s{2,}", line.strip())[0] for line in lines[2:] if line.strip()]
+    assert labels == ["DPCN tiny, range=None", "DPCN tiny, range=(0.0, 180.0)", "classical (no U-Nets)"]
+
+
 @pytest.mark.parametrize(
     "args,message",
     [
         (["--rounds", "0"], "argument --rounds: expected an integer >= 1, got '0'"),
         (["--radii", "abc"], "argument --radii: expected comma-separated integers, got 'abc'"),
         (["--radii", "1"], "inference_radii must be an integer >= 2 or None, got 1"),
+        (["--rotation-range", "abc"], "argument --rotation-range: expected LOW,HIGH, got 'abc'"),
+        (
+            ["--rotation-range", "0,400"],
+            "rotation_range must be [low, high] in degrees with 0 < high - low <= 360, got (0.0, 400.0)",
+        ),
     ],
 )
 def test_bad_arguments_exit_with_one_line(bench, capsys, args, message):
