@@ -72,10 +72,11 @@ class _EvaluationMixin:
     def _gathered_records(self) -> Tensor:
         """``(N, 9)`` records of the epoch in data-set order, gathered over DDP ranks.
 
-        Lightning splits an evaluation set over ranks without repeats: rank ``r`` gets the
-        pairs ``r, r + world, ...``, so ranks may hold one pair fewer. ``all_gather`` needs
-        equal shapes, so each rank pads to the longest with NaN rows, dropped after the
-        ranks are interleaved back into data-set order."""
+        The data module's sampler (:class:`~dpcn.data.datamodule.EpochBlockSampler`) splits
+        an evaluation set over ranks by stride, without repeats: rank ``r`` gets the pairs
+        ``r, r + world, ...``, so ranks may hold one pair fewer. ``all_gather`` needs equal
+        shapes, so each rank pads to the longest with NaN rows, dropped after the ranks are
+        interleaved back into data-set order."""
         records = torch.cat(self._records) if self._records else torch.zeros(0, 9, dtype=torch.float64)
         world = self.trainer.world_size if self._trainer is not None else 1
         if world > 1:
