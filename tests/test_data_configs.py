@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import csv as csv_module
 import logging
 from pathlib import Path
 
@@ -175,6 +176,14 @@ def test_csv_config(tmp_path):
     cfg = compose_config("data=csv")
     with pytest.raises(DataError, match="needs data.train_csv"):
         instantiate(cfg.data).setup("fit")
+    # `test` on them writes each pair's pose under its name, with the errors.
+    out = dpcn("test", "model=classical", "data=csv", f"data.test_csv={csv}", "data.num_workers=0",
+               "trainer.enable_progress_bar=false", f"hydra.run.dir={tmp_path / 'run'}", cwd=tmp_path)  # fmt: skip
+    assert "pairs_test.csv" in out.stdout
+    with (tmp_path / "run" / "pairs_test.csv").open() as f:
+        pairs = list(csv_module.DictReader(f))
+    assert [(p["pair"], p["name"]) for p in pairs] == [("0", "p0"), ("1", "p1")]
+    assert float(pairs[1]["angle"]) == pytest.approx(-40.0) and float(pairs[1]["err_rot"]) < 0.5
 
 
 def test_make_data_cli(tmp_path):

@@ -471,8 +471,11 @@ def _run_evaluation(cfg: DictConfig, stage: str) -> None:
             _exit_code(signal_name),
         ) from None
     if trainer.global_rank == 0:
-        print(module.report(stage, f"{name} on {datamodule.name}", run_dir))
-        print(f"metrics written to {run_dir / f'metrics_{stage}.csv'}")
+        dataset = datamodule.datasets.get("test" if stage == "test" else "val")
+        rows = getattr(dataset, "rows", None)  # pre-cut CSV pairs have names
+        names = [row["name"] for row in rows] if rows else None
+        print(module.report(stage, f"{name} on {datamodule.name}", run_dir, names))
+        print(f"metrics written to {run_dir / f'metrics_{stage}.csv'} (every pair: pairs_{stage}.csv)")
 
 
 def run_make_data(cfg: DictConfig) -> None:

@@ -87,19 +87,34 @@ def write_csv(path: str | Path, rows: Sequence[tuple[str, Mapping[str, float]]])
     return path
 
 
-def write_pairs_csv(path: str | Path, truth: Tensor, prediction: Tensor, confidence: Tensor | None) -> Path:
+def write_pairs_csv(
+    path: str | Path,
+    truth: Tensor,
+    prediction: Tensor,
+    confidence: Tensor | None,
+    names: Sequence[str] | None = None,
+) -> Path:
     """Every evaluated pair as a row of :data:`PAIR_COLUMNS`: ``(N, 4)`` true and estimated
     ``(tx, ty, angle, scale)`` poses, ``(N,)`` confidences (empty cells without), and their
-    :func:`pose_errors`; ``pair`` is the index in the data set. For accuracy at any
-    threshold, and for looking at the misses."""
+    :func:`pose_errors`; ``pair`` is the index in the data set, and ``names`` (one per pair,
+    e.g. a pre-cut CSV's) adds a ``name`` column after it. For accuracy at any threshold, and
+    for looking at the misses."""
+    if names is not None and len(names) != truth.shape[0]:
+        raise ValueError(f"{len(names)} names for {truth.shape[0]} pairs")
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     errors = pose_errors(prediction, truth)
+    header = list(PAIR_COLUMNS)
+    if names is not None:
+        header.insert(1, "name")
     with path.open("w", newline="") as f:
         writer = csv.writer(f)
-        writer.writerow(PAIR_COLUMNS)
+        writer.writerow(header)
         for i in range(truth.shape[0]):
             conf = "" if confidence is None else f"{float(confidence[i]):.6g}"
             values = [*truth[i].tolist(), *prediction[i].tolist()]
-            writer.writerow([i, *(f"{v:.6g}" for v in values), conf, *(f"{v:.6g}" for v in errors[i].tolist())])
+            row = [i, *(f"{v:.6g}" for v in values), conf, *(f"{v:.6g}" for v in errors[i].tolist())]
+            if names is not None:
+                row.insert(1, names[i])
+            writer.writerow(row)
     return path

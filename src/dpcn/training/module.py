@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -100,9 +101,10 @@ class _EvaluationMixin:
         self._reset()
         return metrics
 
-    def report(self, stage: str, name: str, out_dir: str | Path | None) -> str:
+    def report(self, stage: str, name: str, out_dir: str | Path | None, pair_names: Sequence[str] | None = None) -> str:
         """Table of the last metrics; also written as ``metrics_<stage>.csv`` in ``out_dir``,
-        beside ``pairs_<stage>.csv``, every pair's truth, estimate, confidence and errors."""
+        beside ``pairs_<stage>.csv``, every pair's truth, estimate, confidence and errors (and
+        its name, given ``pair_names`` in data-set order)."""
         if not getattr(self, "last_metrics", None):
             return ""
         rows = [(name, self.last_metrics)]
@@ -110,7 +112,8 @@ class _EvaluationMixin:
             write_csv(Path(out_dir) / f"metrics_{stage}.csv", rows)
             records = self.last_records
             confidence = None if torch.isnan(records[:, 8]).all() else records[:, 8]
-            write_pairs_csv(Path(out_dir) / f"pairs_{stage}.csv", records[:, :4], records[:, 4:8], confidence)
+            pairs = Path(out_dir) / f"pairs_{stage}.csv"
+            write_pairs_csv(pairs, records[:, :4], records[:, 4:8], confidence, pair_names)
         return format_table(rows)
 
 
