@@ -157,38 +157,53 @@ def _logged_steps(metrics: Path) -> int:
     return max((int(r["step"]) for r in rows if r.get("train/loss") and (r.get("step") or "").isdigit()), default=-1)
 
 
-@pytest.mark.skipif(not hasattr(os, "killpg"), reason="process groups are POSIX")
-@pytest.mark.parametrize(
+# A stop from outside, as the shell reports it: (signal, its name in the message, exit status).
+STOP_SIGNALS = pytest.mark.parametrize(
     ("signum", "name", "status"),
     [(signal.SIGTERM, "SIGTERM", 143), (signal.SIGINT, "Ctrl-C", 130)],
     ids=["term", "int"],
 )
-def test_a_run_stopped_with_its_data_workers_keeps_its_place(tmp_path, signum, name, status):
-    """A signal to the run's whole process group (a scheduler, `kill -- -PGID`, Ctrl-C in a
-    terminal) stops the data workers too. The run still writes last.ckpt at the step it
-    reached, mid-epoch, and says in one line how to resume, with the shell's exit status."""
-    # 1000 steps per epoch, no periodic checkpoint: a last.ckpt can only be the interrupt's.
-    args = [*SMALL, "data.num_workers=2", "data.epoch_size=4000"]
+
+
+def _stopped_midway(tmp_path: Path, args: list[str], signum: int, ready, settle: float = 0.0) -> tuple[int, str]:
+    """Run ``python -m dpcn *args`` in its own process group (stdout to ``tmp_path/stdout.txt``),
+    send ``signum`` to the whole group (the data workers too) once ``ready()`` holds and
+    ``settle`` more seconds have passed, and return its exit status and stderr."""
     env = {k: v for k, v in os.environ.items() if k not in ("DPCN_DEBUG", "DPCN_COMMAND")}
-    log = tmp_path / "stderr.txt"
-    with log.open("w") as stderr:
+    out, log = tmp_path / "stdout.txt", tmp_path / "stderr.txt"
+    with out.open("w") as stdout, log.open("w") as stderr:
         proc = subprocess.Popen(
-            [sys.executable, "-m", "dpcn", "fit", *args, f"hydra.run.dir={tmp_path / 'run'}"],
-            cwd=tmp_path, env=env, stdout=subprocess.DEVNULL, stderr=stderr, start_new_session=True,
+            [sys.executable, "-m", "dpcn", *args],
+            cwd=tmp_path, env=env, stdout=stdout, stderr=stderr, start_new_session=True,
         )  # fmt: skip
         try:
             deadline = time.monotonic() + 120
-            while _logged_steps(tmp_path / "run" / "metrics.csv") < 2:  # an optimiser step has been taken
+            while not ready():
                 assert proc.poll() is None, log.read_text()[-3000:]
-                assert time.monotonic() < deadline, "training did not start"
+                assert time.monotonic() < deadline, f"dpcn {args[0]} did not get going"
                 time.sleep(0.2)
+            time.sleep(settle)
             os.killpg(proc.pid, signum)
             proc.wait(timeout=120)
         finally:
             if proc.poll() is None:
                 os.killpg(proc.pid, signal.SIGKILL)
-    err = log.read_text()
-    assert proc.returncode == status, err[-3000:]
+    return proc.returncode, log.read_text()
+
+
+@pytest.mark.skipif(not hasattr(os, "killpg"), reason="process groups are POSIX")
+@STOP_SIGNALS
+def test_a_run_stopped_with_its_data_workers_keeps_its_place(tmp_path, signum, name, status):
+    """A signal to the run's whole process group (a scheduler, `kill -- -PGID`, Ctrl-C in a
+    terminal) stops the data workers too. The run still writes last.ckpt at the step it
+    reached, mid-epoch, and says in one line how to resume, with the shell's exit status."""
+    # 1000 steps per epoch, no periodic checkpoint: a last.ckpt can only be the interrupt's.
+    args = ["fit", *SMALL, "data.num_workers=2", "data.epoch_size=4000", f"hydra.run.dir={tmp_path / 'run'}"]
+    # Stopped once an optimiser step has been taken.
+    returncode, err = _stopped_midway(
+        tmp_path, args, signum, lambda: _logged_steps(tmp_path / "run" / "metrics.csv") >= 2
+    )
+    assert returncode == status, err[-3000:]
     last = tmp_path / "run" / "checkpoints" / "last.ckpt"
     message = err.strip().splitlines()[-1]
     assert message.startswith(f"dpcn fit: stopped by {name}; {last} holds the run after "), message
@@ -200,37 +215,26 @@ def test_a_run_stopped_with_its_data_workers_keeps_its_place(tmp_path, signum, n
     assert load_matcher(last) is not None
 
 
-@pytest.mark.parametrize(
-    ("signum", "name", "status"),
-    [(signal.SIGTERM, "SIGTERM", 143), (signal.SIGINT, "Ctrl-C", 130)],
-    ids=["term", "int"],
-)
+@pytest.mark.skipif(not hasattr(os, "killpg"), reason="process groups are POSIX")
+@STOP_SIGNALS
 def test_an_evaluation_stopped_by_a_signal_says_so_in_one_line(tmp_path, signum, name, status):
     """`test` stopped with its data workers (a signal to the process group) ends with one line
     saying how far it got and that no metrics were written, the shell's exit status, and no
     traceback or partial metrics file."""
-    args = ["model=classical", "data.num_workers=2", "data.test_length=40000", f"hydra.run.dir={tmp_path / 'run'}"]
-    env = {k: v for k, v in os.environ.items() if k not in ("DPCN_DEBUG", "DPCN_COMMAND")}
-    out, log = tmp_path / "stdout.txt", tmp_path / "stderr.txt"
-    with out.open("w") as stdout, log.open("w") as stderr:
-        proc = subprocess.Popen(
-            [sys.executable, "-m", "dpcn", "test", *args],
-            cwd=tmp_path, env=env, stdout=stdout, stderr=stderr, start_new_session=True,
-        )  # fmt: skip
-        try:
-            deadline = time.monotonic() + 120
-            while "Testing DataLoader 0:" not in out.read_text() or "/5000 [" not in out.read_text():
-                assert proc.poll() is None, log.read_text()[-3000:]
-                assert time.monotonic() < deadline, "testing did not start"
-                time.sleep(0.2)
-            time.sleep(1.0)  # some batches done
-            os.killpg(proc.pid, signum)
-            proc.wait(timeout=120)
-        finally:
-            if proc.poll() is None:
-                os.killpg(proc.pid, signal.SIGKILL)
-    err = log.read_text()
-    assert proc.returncode == status, err[-3000:]
+    args = [
+        "test",
+        "model=classical",
+        "data.num_workers=2",
+        "data.test_length=40000",
+        f"hydra.run.dir={tmp_path / 'run'}",
+    ]
+
+    def testing() -> bool:  # the progress bar counts the 5000 test batches
+        text = (tmp_path / "stdout.txt").read_text()
+        return "Testing DataLoader 0:" in text and "/5000 [" in text
+
+    returncode, err = _stopped_midway(tmp_path, args, signum, testing, settle=1.0)
+    assert returncode == status, err[-3000:]
     message = err.strip().splitlines()[-1]
     assert re.fullmatch(
         rf"dpcn test: stopped by {name} after \d+ batches; "

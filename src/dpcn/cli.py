@@ -97,7 +97,7 @@ def inference_settings(cfg: DictConfig) -> dict[str, int | str | None]:
         "rotation_views": cfg.rotation_views,
         "unet_dtype": cfg.get("unet_dtype"),
         "inference_radii": cfg.get("inference_radii"),
-        "rotation_range": _plain_list(cfg.get("rotation_range")),
+        "rotation_range": cfg.get("rotation_range"),
     }
 
 
@@ -112,11 +112,6 @@ def _pair_matcher(cfg: DictConfig, device: str) -> Callable[[Tensor, Tensor], Po
 
     options = OmegaConf.to_container(cfg.registration, resolve=True)
     return lambda template, source: register(template, source, device=device, **options)
-
-
-def _plain_list(value: object) -> object:
-    """An OmegaConf list as a plain list (settings are validated by their consumers)."""
-    return OmegaConf.to_container(value) if OmegaConf.is_list(value) else value
 
 
 def run_predict(cfg: DictConfig) -> None:
