@@ -218,6 +218,7 @@ def test_cli_predict_pairs_writes_every_pose_as_csv(tmp_path):
         ([], "missing", "source image for 'cam' not found"),
         ([], "header", "missing column(s) ['name']"),
         ([], "sizes", "pair 'cam': template and source must have the same size"),
+        ([], "tiny", "pair 'cam': template is 4x4 pixels; at least 8x8 is needed"),
     ],
 )
 def test_cli_predict_pairs_errors_are_one_line(tmp_path, args, setup, message):
@@ -225,6 +226,9 @@ def test_cli_predict_pairs_errors_are_one_line(tmp_path, args, setup, message):
                         missing=("cam",) if setup == "missing" else ())  # fmt: skip
     if setup == "sizes":
         cv2.imwrite(str(tmp_path / "source" / "cam.png"), np.zeros((64, 64), np.uint8))
+    if setup == "tiny":  # too small to match
+        for folder in ("template", "source"):
+            cv2.imwrite(str(tmp_path / folder / "cam.png"), np.full((4, 4), 9, np.uint8))
     out = run_cli("predict", f"pairs={pairs}", "out=poses.csv", *args, cwd=tmp_path)
     assert out.returncode == 2
     lines = out.stderr.strip().splitlines()

@@ -428,6 +428,14 @@ def test_predict_with_a_checkpoint(trained, tmp_path):
     assert [r["name"] for r in rows] == ["p0", "p1", "p2"]
     for key, value in single.items():
         assert float(rows[1][key]) == pytest.approx(value, rel=1e-4, abs=1e-4), key
+    # A pair of another size than the model's is named, and nothing is written.
+    for folder in ("template", "source"):
+        cv2.imwrite(str(tmp_path / folder / "big.png"), (rng.random((48, 48)) * 255).astype(np.uint8))
+    (tmp_path / "pairs.csv").write_text("name\np0\nbig\np2\n")
+    out = dpcn("predict", "pairs=pairs.csv", "out=poses.csv", ckpt, cwd=tmp_path, check=False)
+    assert out.returncode == 2 and "Traceback" not in out.stderr
+    assert "pair 'big': this model was built for 32x32 images, got 48x48" in out.stderr
+    assert not (tmp_path / "poses.csv").exists()
 
 
 @pytest.mark.parametrize(

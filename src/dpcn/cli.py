@@ -101,17 +101,28 @@ def inference_settings(cfg: DictConfig) -> dict[str, int | str | None]:
     }
 
 
-def _pair_matcher(cfg: DictConfig, device: str) -> Callable[[Tensor, Tensor], Pose]:
-    """``predict``'s matcher of ``(B, C, H, W)`` pairs: the checkpoint's DPCN, or without
-    ``ckpt_path`` the classical estimator with the ``registration`` settings."""
+def _pair_matcher(
+    cfg: DictConfig, device: str
+) -> tuple[Callable[[Tensor, Tensor], Pose], Callable[[Tensor, Tensor], None]]:
+    """``predict``'s matcher of ``(B, C, H, W)`` pairs and its input check (raises ``ValueError``
+    naming the problem): the checkpoint's DPCN, or without ``ckpt_path`` the classical estimator
+    with the ``registration`` settings."""
     if cfg.ckpt_path:
         from .training.module import load_matcher
 
-        return load_matcher(cfg.ckpt_path, device, **inference_settings(cfg)).match
-    from .registration import register
+        module = load_matcher(cfg.ckpt_path, device, **inference_settings(cfg))
+        return module.match, module.model.check_inputs
+    import torch
 
-    options = OmegaConf.to_container(cfg.registration, resolve=True)
-    return lambda template, source: register(template, source, device=device, **options)
+    from .estimator import PhaseCorrelationEstimator
+
+    estimator = PhaseCorrelationEstimator(**OmegaConf.to_container(cfg.registration, resolve=True)).to(device)
+
+    def match(template: Tensor, source: Tensor) -> Pose:
+        with torch.no_grad():
+            return estimator(template, source)
+
+    return match, estimator.check_inputs
 
 
 def run_predict(cfg: DictConfig) -> None:
@@ -126,7 +137,7 @@ def run_predict(cfg: DictConfig) -> None:
         raise CliError("predict needs template=PATH and source=PATH (or pairs=CSV)")
     device = _resolve_device(str(cfg.device))
     template, source = load_image(cfg.template), load_image(cfg.source)
-    match = _pair_matcher(cfg, device)
+    match, _ = _pair_matcher(cfg, device)
     print(match(*prepare_pair(template, source, device)).to_json())
 
 
@@ -139,12 +150,12 @@ def _predict_pairs(cfg: DictConfig) -> None:
     import torch
 
     from .data.aeroground import CsvPairs
-    from .io import DpcnInputError, load_image, prepare_pair
+    from .io import load_image, prepare_pair
 
     size = check_int("predict_batch_size", cfg.predict_batch_size, 1)
     device = _resolve_device(str(cfg.device))
     rows = CsvPairs(cfg.pairs, poses=False).rows  # names and image paths, checked up front
-    match = _pair_matcher(cfg, device)
+    match, check = _pair_matcher(cfg, device)
     out = Path(cfg.out) if cfg.out else None
     if out is not None and not out.parent.is_dir():
         raise CliError(f"out={out}: folder {out.parent} does not exist")
@@ -163,7 +174,8 @@ def _predict_pairs(cfg: DictConfig) -> None:
     for row in rows:
         try:
             template, source = prepare_pair(load_image(row["template"]), load_image(row["source"]), device)
-        except DpcnInputError as error:
+            check(template, source)  # before its batch: the error names this pair
+        except ValueError as error:  # DpcnInputError included
             raise CliError(f"{cfg.pairs}: pair {row['name']!r}: {error}") from None
         if batch and (template.shape != batch[0][1].shape or source.shape != batch[0][2].shape):
             flush()

@@ -523,8 +523,12 @@ class PhaseCorrelationEstimator(nn.Module):
         window_grid_shifts(8, 8, spectrum_window_grid, spectrum_window_step)  # validates them
         self.spectrum_window = (spectrum_window_grid, spectrum_window_step)
 
-    def forward(self, template: Tensor, source: Tensor) -> Pose:
+    def check_inputs(self, template: Tensor, source: Tensor) -> None:
+        """Raise ``ValueError`` naming the problem for a pair this estimator cannot match."""
         check_pair(template, source, min_size=8)
+
+    def forward(self, template: Tensor, source: Tensor) -> Pose:
+        self.check_inputs(template, source)
         shifts = window_grid_shifts(*source.shape[-2:], *self.spectrum_window)
         options = dict(self.rotation_scale_options, source_shifts=shifts)
         with inputs_checked():
