@@ -47,6 +47,7 @@ TIMED_SETTINGS = (  # the preset's architecture and its cost-bearing inference s
     "n_angles",
     "n_radii",
     "highpass",
+    "log_spectrum",
     "rotation_hypotheses",
     "spectrum_window_grid",
     "spectrum_window_step",

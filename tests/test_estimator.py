@@ -18,6 +18,7 @@ from dpcn.estimator import (
     unwarp_rotation_scale,
     window_grid_shifts,
 )
+from dpcn.ops import log_polar, magnitude_spectrum
 from dpcn.pose import Pose, warp_by_pose
 
 from .conftest import angle_error, cv2_warp, photo
@@ -334,6 +335,40 @@ def test_gradcheck_rotation_scale_stage_with_views():
             r.scale,
         ]
     )
+    assert gradcheck(fn, (a, b), eps=1e-6, atol=1e-4)
+
+
+# ---------------------------------------------------------------- stage 1 on log-compressed spectra
+
+
+@pytest.mark.parametrize("name,tx,ty,angle,scale", CASES)
+def test_log_spectrum_recovers_opencv_pose_on_photos(name, tx, ty, angle, scale):
+    template = photo(name)
+    pose = recover(template, cv2_warp(template, tx, ty, angle, scale), log_spectrum=True)
+    assert float(pose.tx) == pytest.approx(tx, abs=0.5)
+    assert float(pose.ty) == pytest.approx(ty, abs=0.5)
+    assert angle_error(pose.angle, angle) < 0.3
+    assert float(pose.scale) == pytest.approx(scale, rel=0.006)
+
+
+def test_log_spectrum_correlates_the_log_polar_maps_of_log1p_magnitudes():
+    a, b = (t.detach() for t in _small_images())
+    options = dict(n_angles=16, n_radii=12, window=2, highpass=False)
+    logged = estimate_rotation_scale(a, b, log_spectrum=True, **options)
+    plain = estimate_rotation_scale(a, b, **options)
+    spectra = magnitude_spectrum(torch.cat([a, b]), half=True, highpass=False)
+    by_hand = log_polar(torch.log1p(spectra), 16, 12, 0.03, 0.95, half=True, width=a.shape[-1])
+    torch.testing.assert_close(logged.log_polar_template, by_hand[:1])
+    torch.testing.assert_close(logged.log_polar_source, by_hand[1:])
+    plain_maps = log_polar(spectra, 16, 12, 0.03, 0.95, half=True, width=a.shape[-1])
+    torch.testing.assert_close(plain.log_polar_template, plain_maps[:1])
+    assert not torch.allclose(logged.angle, plain.angle)  # and the estimate follows the maps
+
+
+def test_gradcheck_rotation_scale_stage_on_log_spectra():
+    a, b = _small_images()
+    options = dict(n_angles=16, n_radii=12, window=2, log_spectrum=True)
+    fn = lambda x, y: torch.stack([(r := estimate_rotation_scale(x, y, **options)).angle, r.scale])  # noqa: E731
     assert gradcheck(fn, (a, b), eps=1e-6, atol=1e-4)
 
 

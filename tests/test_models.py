@@ -194,6 +194,15 @@ def test_gradcheck_end_to_end_to_both_images():
     assert gradcheck(lambda a, b: model(a, b).pose.as_tensor(), (t, s), eps=1e-6, atol=1e-4)
 
 
+def test_gradcheck_end_to_end_with_log_spectrum():
+    torch.manual_seed(0)
+    model = DPCN(base_channels=2, depth=1, image_size=None, n_angles=12, n_radii=10, window=1, log_spectrum=True)
+    model = model.double().eval()
+    t = torch.rand(1, 1, 16, 16, dtype=torch.float64, requires_grad=True)
+    s = torch.rand(1, 1, 16, 16, dtype=torch.float64, requires_grad=True)
+    assert gradcheck(lambda a, b: model(a, b).pose.as_tensor(), (t, s), eps=1e-6, atol=1e-4)
+
+
 def test_phase1_downsample_and_width_options_shape_the_phase1_unets():
     model = small_dpcn(rotation_scale_downsample=2, rotation_scale_base_channels=3, rotation_scale_depth=2).eval()
     out = model(torch.rand(2, 1, 32, 32), torch.rand(2, 1, 32, 32))
@@ -535,6 +544,25 @@ def test_decoupled_phase1_recovers_an_opencv_pose_and_its_surface_is_separable()
     torch.testing.assert_close(surface - surface[:, :1], (surface - surface[:, :1])[:1].expand_as(surface))
     with pytest.raises(ValueError, match="rotation_scale_correlation must be one of joint, decoupled, got '1d'"):
         small_dpcn(rotation_scale_correlation="1d")
+
+
+def test_log_spectrum_phase1_recovers_an_opencv_pose_from_its_own_log_polar_maps():
+    # Untrained with input_skip, DPCN is classical phase correlation on softplus images.
+    torch.manual_seed(0)
+    image = photo("camera", (128, 128))
+    template = torch.from_numpy(image)[None, None]
+    source = torch.from_numpy(cv2_warp(image, 6.0, -4.0, 35.0, 1.1))[None, None]
+    model = DPCN(base_channels=2, depth=1, input_skip=True, image_size=(128, 128), log_spectrum=True).eval()
+    with torch.no_grad():
+        out = model(template, source)
+        plain = DPCN(base_channels=2, depth=1, input_skip=True, image_size=(128, 128)).eval()
+        plain.load_state_dict(model.state_dict())
+        plain_out = plain(template, source)
+    assert angle_error(out.pose.angle, 35.0) < 0.5 and abs(float(out.pose.scale) - 1.1) < 0.01
+    assert abs(float(out.pose.tx) - 6.0) < 1.0 and abs(float(out.pose.ty) + 4.0) < 1.0
+    # The same weights: the maps differ by the log alone (log1p before the log-polar sampling).
+    assert (out.rotation_scale.log_polar_template < plain_out.rotation_scale.log_polar_template.log1p() + 1e-6).all()
+    assert not torch.allclose(out.rotation_scale.log_polar_template, plain_out.rotation_scale.log_polar_template)
 
 
 def test_gradcheck_end_to_end_with_decoupled_phase1():

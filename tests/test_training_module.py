@@ -111,7 +111,7 @@ def test_half_turn_term_trains_phase2_on_the_turned_source():
         warnings.simplefilter("ignore")  # self.log() without a trainer
         loss = only._training_loss(*batch())
     loss.backward()
-    assert torch.isfinite(loss) and float(loss) > 0
+    assert torch.isfinite(loss) and loss.item() > 0
     # One source pass holding the upright and the half-turned un-warps of the phase-2 pairs.
     (inputs,) = seen
     upright, turned = inputs.chunk(2)

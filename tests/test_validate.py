@@ -7,8 +7,9 @@ import math
 import numpy as np
 import pytest
 
-from dpcn._validate import check_int, check_number
+from dpcn._validate import check_bool, check_int, check_number
 from dpcn.data.datamodule import PairDataModule
+from dpcn.estimator import PhaseCorrelationEstimator
 from dpcn.models import DPCN
 from dpcn.training.module import DPCNModule
 
@@ -22,6 +23,14 @@ def test_check_int_accepts_python_and_numpy_integers():
 def test_check_int_rejects_non_integers_and_values_below_the_bound(value):
     with pytest.raises(ValueError, match=r"^depth must be an integer >= 1, got "):
         check_int("depth", value, low=1)
+
+
+def test_check_bool_takes_only_booleans():
+    assert check_bool("b", True) is True and check_bool("b", np.bool_(False)) is False
+    for value in ("maybe", "true", 1, 0, None):  # a CLI typo is not a truthy value
+        with pytest.raises(ValueError) as info:
+            check_bool("model.net.highpass", value)
+        assert str(info.value) == f"model.net.highpass must be true or false, got {value!r}"
 
 
 def test_check_number_ranges():
@@ -57,6 +66,9 @@ def test_check_number_ranges():
         (dict(scale_range=(0.5, "2")), "scale_range must be a finite number > 0, got '2'"),
         (dict(train_temperature=(0.1, -1.0)), "train_temperature must be a finite number > 0, got -1.0"),
         (dict(spectrum_window_step="abc"), "spectrum_window_step must be in (0, 0.5)"),
+        (dict(highpass="maybe"), "model.net.highpass must be true or false, got 'maybe'"),
+        (dict(log_spectrum=1), "model.net.log_spectrum must be true or false, got 1"),
+        (dict(input_skip="no"), "model.net.input_skip must be true or false, got 'no'"),
     ],
 )
 def test_dpcn_settings_are_checked_by_name(kwargs, message):
@@ -74,6 +86,8 @@ def test_dpcn_settings_are_checked_by_name(kwargs, message):
         (dict(warmup_epochs=0.5), "model.warmup_epochs must be an integer >= 0, got 0.5"),
         (dict(translation_fraction=0), "model.translation_fraction must be a finite number in (0, 1], got 0"),
         (dict(temperature=[0.1, "abc"]), "model.temperature must be a finite number > 0, got 'abc'"),
+        (dict(learnable_temperature="yes"), "model.learnable_temperature must be true or false, got 'yes'"),
+        (dict(warp_grad=1), "model.warp_grad must be true or false, got 1"),
     ],
 )
 def test_training_settings_are_checked_by_name(kwargs, message):
@@ -81,6 +95,12 @@ def test_training_settings_are_checked_by_name(kwargs, message):
     with pytest.raises(ValueError) as info:
         DPCNModule(net=net, **kwargs)
     assert str(info.value) == message
+
+
+@pytest.mark.parametrize("name", ["highpass", "log_spectrum", "resolve_180"])
+def test_estimator_switches_are_checked_by_name(name):
+    with pytest.raises(ValueError, match=rf"^{name} must be true or false, got 'maybe'$"):
+        PhaseCorrelationEstimator(**{name: "maybe"})
 
 
 def test_data_module_settings_are_checked_by_name():

@@ -11,7 +11,18 @@ import math
 import numbers
 from collections.abc import Sequence
 
-__all__ = ["check_int", "check_ints", "check_number", "check_sequence"]
+__all__ = ["check_bool", "check_int", "check_ints", "check_number", "check_sequence"]
+
+
+def check_bool(name: str, value: object) -> bool:
+    """``value`` as a ``bool``; ``ValueError`` naming ``name`` otherwise.
+
+    Only ``True``/``False`` (numpy's too) pass: a switch given as ``maybe`` or ``2`` on the
+    command line is a typo, not a truthy value.
+    """
+    if type(value).__name__ not in ("bool", "bool_"):
+        raise ValueError(f"{name} must be true or false, got {value!r}")
+    return bool(value)
 
 
 def check_int(name: str, value: object, low: int | None = None) -> int:

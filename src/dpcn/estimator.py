@@ -19,6 +19,7 @@ import kornia
 import torch
 from torch import Tensor, nn
 
+from ._validate import check_bool
 from .ops._checks import check_pair, full_precision, inputs_checked
 from .ops.correlation import correlation_surface, cross_power_spectrum, phase_correlation_1d
 from .ops.logpolar import log_polar, log_polar_grid, log_radius_step
@@ -263,6 +264,7 @@ def estimate_rotation_scale(
     min_radius: float = 0.03,
     max_radius: float = 0.95,
     highpass: bool = True,
+    log_spectrum: bool = False,
     sigma: float = 2.0,
     temperature: float | Tensor = 0.1,
     window: int | None = 3,
@@ -280,6 +282,9 @@ def estimate_rotation_scale(
         n_angles, n_radii, min_radius, max_radius: log-polar grid (see
             :func:`dpcn.ops.log_polar`); ``180 / n_angles`` degrees per row.
         highpass: apply the Reddy high-pass filter to the magnitude spectra.
+        log_spectrum: log-polar maps of ``log(1 + |F|)`` instead of ``|F|``: compresses the
+            spectra's dynamic range, so that the weak high frequencies of edges count beside
+            the strong low ones.
         sigma, temperature, window, relative: correlation blur and soft-argmax settings
             (:func:`dpcn.ops.phase_correlation`, :func:`dpcn.ops.soft_argmax2d`).
         scale_range: only scales in this range are searched (``None``: all).
@@ -312,7 +317,9 @@ def estimate_rotation_scale(
     shifts = [tuple(int(v) for v in shift) for shift in source_shifts if tuple(shift) != (0, 0)]
     sources = [source] + [torch.roll(source, shift, dims=(-2, -1)) for shift in shifts]
     # All spectra in one batch: half spectra (point symmetry) sampled on angles [-90, 90).
-    spectra = magnitude_spectrum(torch.cat([template, *sources]), window=True, highpass=highpass, half=True)
+    spectra = magnitude_spectrum(
+        torch.cat([template, *sources]), window=True, highpass=highpass, log=log_spectrum, half=True
+    )
     maps = log_polar(spectra, n_angles, n_radii, min_radius, max_radius, half=True, width=template.shape[-1])
     batch = len(template)
     lp_t, lp_all = maps[:batch], maps[batch:]
@@ -443,6 +450,7 @@ class PhaseCorrelationEstimator(nn.Module):
     Args:
         n_angles, n_radii, min_radius, max_radius: log-polar grid of stage 1.
         highpass: Reddy high-pass on the magnitude spectra.
+        log_spectrum: stage 1 on ``log(1 + |F|)`` (see :func:`estimate_rotation_scale`).
         sigma: Gaussian blur (pixels) of the translation correlation surface.
         rotation_sigma, rotation_temperature: the same for the log-polar surface of stage 1
             (default: ``sigma`` and ``temperature``). Less blur there keeps the close
@@ -470,6 +478,7 @@ class PhaseCorrelationEstimator(nn.Module):
         min_radius: float = 0.03,
         max_radius: float = 0.95,
         highpass: bool = True,
+        log_spectrum: bool = False,
         sigma: float = 2.0,
         temperature: float = 0.1,
         window: int | None = 3,
@@ -486,6 +495,8 @@ class PhaseCorrelationEstimator(nn.Module):
         super().__init__()
         log_polar_grid(8, 8, n_angles, n_radii, min_radius, max_radius)  # validates the grid
         check_rotation_scale_correlation(rotation_scale_correlation)
+        for name, value in (("highpass", highpass), ("log_spectrum", log_spectrum), ("resolve_180", resolve_180)):
+            check_bool(name, value)
         rotation_sigma = sigma if rotation_sigma is None else rotation_sigma
         rotation_temperature = temperature if rotation_temperature is None else rotation_temperature
         if sigma < 0 or rotation_sigma < 0:
@@ -502,6 +513,7 @@ class PhaseCorrelationEstimator(nn.Module):
             min_radius=min_radius,
             max_radius=max_radius,
             highpass=highpass,
+            log_spectrum=log_spectrum,
             sigma=rotation_sigma,
             temperature=rotation_temperature,
             window=window,

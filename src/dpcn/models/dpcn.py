@@ -31,7 +31,7 @@ import torch
 from torch import Tensor, nn
 from torch.nn import functional as F
 
-from .._validate import check_int, check_ints, check_number, check_sequence
+from .._validate import check_bool, check_int, check_ints, check_number, check_sequence
 from ..estimator import (
     RotationScale,
     Translation,
@@ -124,7 +124,8 @@ class DPCN(nn.Module):
             sensor shows the shared structure faintly (the simulated style A).
         image_size: ``(H, W)`` the model is built for; other sizes raise a clear error
             (``None`` accepts any size).
-        n_angles, n_radii, min_radius, max_radius, highpass: phase-1 log-polar settings.
+        n_angles, n_radii, min_radius, max_radius, highpass, log_spectrum: phase-1 log-polar
+            settings (see :func:`~dpcn.estimator.estimate_rotation_scale`).
         sigma, rotation_sigma, temperature, rotation_temperature, window: sub-pixel peak
             location at inference (see :class:`~dpcn.estimator.PhaseCorrelationEstimator`).
         train_temperature: softmax temperature of the training losses (the paper's
@@ -187,6 +188,7 @@ class DPCN(nn.Module):
         min_radius: float = 0.03,
         max_radius: float = 0.95,
         highpass: bool = True,
+        log_spectrum: bool = False,
         sigma: float = 2.0,
         rotation_sigma: float = 1.0,
         temperature: float = 0.1,
@@ -228,6 +230,8 @@ class DPCN(nn.Module):
             check_number(f"model.net.{name}", value, low=0.0)
         for name, value in (("temperature", temperature), ("rotation_temperature", rotation_temperature)):
             check_number(f"model.net.{name}", value, low=0.0, low_open=True)
+        for name, value in (("input_skip", input_skip), ("highpass", highpass), ("log_spectrum", log_spectrum)):
+            check_bool(f"model.net.{name}", value)
         if image_size is not None:
             check_sequence("image_size", image_size, 2, "an (H, W) pair of integers")
             image_size = [check_int("image_size", v, low=8 * int(rotation_scale_downsample)) for v in image_size]
@@ -258,7 +262,7 @@ class DPCN(nn.Module):
         self.image_size = None if image_size is None else (int(image_size[0]), int(image_size[1]))
         self.n_angles, self.n_radii = n_angles, n_radii
         self.min_radius, self.max_radius = min_radius, max_radius
-        self.highpass = highpass
+        self.highpass, self.log_spectrum = highpass, log_spectrum
         self.sigma, self.rotation_sigma = sigma, rotation_sigma
         self.temperature, self.rotation_temperature = temperature, rotation_temperature
         self.window = window
@@ -475,6 +479,7 @@ class DPCN(nn.Module):
             min_radius=self.min_radius,
             max_radius=self.max_radius,
             highpass=self.highpass,
+            log_spectrum=self.log_spectrum,
             sigma=self.rotation_sigma,
             temperature=self.rotation_temperature,
             window=self.window,

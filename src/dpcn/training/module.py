@@ -11,7 +11,7 @@ import lightning as L
 import torch
 from torch import Tensor
 
-from .._validate import check_int, check_number
+from .._validate import check_bool, check_int, check_number
 from ..estimator import PhaseCorrelationEstimator, estimate_translation, unwarp_rotation_scale
 from ..io import prepare_pair
 from ..metrics import format_table, pose_errors, summarize, thresholds_for, write_csv, write_pairs_csv
@@ -173,6 +173,8 @@ class DPCNModule(_EvaluationMixin, L.LightningModule):
         check_int("model.warmup_epochs", warmup_epochs, low=0)
         check_number("model.translation_fraction", translation_fraction, low=0.0, high=1.0, low_open=True)
         check_number("model.translation_threshold", translation_threshold, low=0.0, low_open=True)
+        check_bool("model.learnable_temperature", learnable_temperature)
+        check_bool("model.warp_grad", warp_grad)
         if train_spectrum_window not in TRAIN_SPECTRUM_WINDOWS:
             raise ValueError(
                 f"model.train_spectrum_window must be one of {', '.join(TRAIN_SPECTRUM_WINDOWS)}, "
