@@ -139,12 +139,24 @@ def test_constant_images_give_finite_output():
 
 
 def test_rejects_bad_options_and_inputs():
-    with pytest.raises(ValueError, match="temperatures must be positive"):
+    with pytest.raises(ValueError, match=r"^temperature must be a finite number > 0, got 0.0$"):
         PhaseCorrelationEstimator(temperature=0.0)
     with pytest.raises(ValueError, match="scale_range"):
         PhaseCorrelationEstimator(scale_range=(1.5, 2.0))
-    with pytest.raises(ValueError, match="at least 2"):
+    with pytest.raises(ValueError, match=r"^n_angles must be an integer >= 2, got 1$"):
         PhaseCorrelationEstimator(n_angles=1)
+    # Values of the wrong type, as the command line passes them, are named too.
+    for name, value, message in [
+        ("window", "abc", "window must be an integer >= 0, got 'abc'"),
+        ("refine", "abc", "refine must be an integer >= 0, got 'abc'"),
+        ("refine", -1, "refine must be an integer >= 0, got -1"),
+        ("rotation_sigma", "x", "rotation_sigma must be a finite number >= 0, got 'x'"),
+        ("rotation_temperature", -1.0, "rotation_temperature must be a finite number > 0, got -1.0"),
+        ("max_radius", "1", "max_radius must be a finite number in (0, 1], got '1'"),
+    ]:
+        with pytest.raises(ValueError) as info:
+            PhaseCorrelationEstimator(**{name: value})
+        assert str(info.value) == message
     with pytest.raises(ValueError, match="spectrum_window_grid must be an odd integer >= 1, got 2"):
         PhaseCorrelationEstimator(spectrum_window_grid=2)
     with pytest.raises(ValueError, match="spectrum_window_step"):

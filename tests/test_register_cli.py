@@ -147,7 +147,8 @@ def test_cli_predict_prints_json(tmp_path, pair):
         (["source=s.png"], "needs template=PATH and source=PATH"),
         (["template=t.png", "source=missing.png"], "not found: missing.png"),
         (["template=t.png", "source=small.png"], "same size"),
-        (["template=t.png", "source=s.png", "registration.temperature=-1"], "temperatures must be positive"),
+        (["template=t.png", "source=s.png", "registration.temperature=-1"], "temperature must be a finite number > 0"),
+        (["template=t.png", "source=s.png", "registration.window=abc"], "window must be an integer >= 0, got 'abc'"),
         (["template=t.png", "source=s.png", "device=cuda:7"], "CUDA is not available"),
     ],
 )

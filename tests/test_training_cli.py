@@ -463,6 +463,12 @@ def test_predict_with_a_checkpoint(trained, tmp_path):
         (["fit", "model.net.rotation_range=[0,400]"], "rotation_range must be [low, high] in degrees with 0 < high"),
         (["test", "model=classical", "registration.rotation_range=[90]"], "rotation_range must be [low, high] in"),
         (["fit", "trainer.precision=bf32"], "trainer.precision must be auto or one of Lightning's 32-true, bf16-mixed"),
+        (["fit", "seed=abc"], "seed must be an integer >= 0, got 'abc'"),
+        (["test", "model=classical", "seed=4294967296"], "seed must be an integer < 2**32, got 4294967296"),
+        (["fit", "model.net.highpass=maybe"], "model.net.highpass must be true or false, got 'maybe'"),
+        (["test", "model=classical", "registration.resolve_180=1"], "resolve_180 must be true or false, got 1"),
+        (["test", "model=classical", "registration.refine=abc"], "refine must be an integer >= 0, got 'abc'"),
+        (["make-data", "out=scenes", "n_scenes=abc"], "n_scenes must be an integer >= 1, got 'abc'"),
     ],
 )
 def test_bad_runs_fail_in_one_line(tmp_path, args, message):

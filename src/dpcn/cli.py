@@ -191,6 +191,15 @@ def _predict_pairs(cfg: DictConfig) -> None:
         print(f"poses of {len(rows)} pairs written to {out}", file=sys.stderr)
 
 
+def _seed(cfg: DictConfig) -> int:
+    """``cfg.seed``, an integer in ``[0, 2**32)`` (numpy's range), checked by name: Lightning's
+    own errors say ``invalid literal for int()`` or ``-1 is not in bounds``."""
+    seed = check_int("seed", cfg.seed, low=0)
+    if seed >= 2**32:
+        raise ValueError(f"seed must be an integer < 2**32, got {seed}")
+    return seed
+
+
 def _run_dir() -> Path:
     from hydra.core.hydra_config import HydraConfig
 
@@ -410,7 +419,7 @@ def run_fit(cfg: DictConfig) -> None:
     from .training.module import DPCNModule, load_weights
 
     ckpt = _check_ckpt(cfg.ckpt_path)
-    L.seed_everything(cfg.seed, workers=True)
+    L.seed_everything(_seed(cfg), workers=True)
     run_dir = _run_dir()
     datamodule = instantiate(cfg.data)
     module = instantiate(cfg.model, _convert_="all")
@@ -448,7 +457,7 @@ def _run_evaluation(cfg: DictConfig, stage: str) -> None:
 
     from .training.module import ClassicalModule, load_matcher
 
-    L.seed_everything(cfg.seed, workers=True)
+    L.seed_everything(_seed(cfg), workers=True)
     run_dir = _run_dir()
     datamodule = instantiate(cfg.data)
     ckpt = _check_ckpt(cfg.ckpt_path)
@@ -498,7 +507,8 @@ def run_make_data(cfg: DictConfig) -> None:
     if len(size) != 2 or not all(isinstance(v, int) and v > 0 for v in size):
         raise CliError(f"scene_size must be one positive integer or [H, W], got {cfg.scene_size}")
     h, w = size
-    root = make_dataset(out, n_scenes=int(cfg.n_scenes), seed=int(cfg.seed), size=(h, w), gap=int(cfg.split_gap))
+    n_scenes, gap = check_int("n_scenes", cfg.n_scenes, low=1), check_int("split_gap", cfg.split_gap, low=0)
+    root = make_dataset(out, n_scenes=n_scenes, seed=_seed(cfg), size=(h, w), gap=gap)
     scenes = sorted(p.name for p in root.iterdir() if p.is_dir())
     print(f"wrote {len(scenes)} scenes ({', '.join(scenes)}) of {h}x{w} px (H x W) to {root}")
 

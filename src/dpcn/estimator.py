@@ -19,7 +19,7 @@ import kornia
 import torch
 from torch import Tensor, nn
 
-from ._validate import check_bool
+from ._validate import check_bool, check_ints, check_number
 from .ops._checks import check_pair, full_precision, inputs_checked
 from .ops.correlation import correlation_surface, cross_power_spectrum, phase_correlation_1d
 from .ops.logpolar import log_polar, log_polar_grid, log_radius_step
@@ -493,18 +493,20 @@ class PhaseCorrelationEstimator(nn.Module):
         rotation_range: tuple[float, float] | None = None,
     ) -> None:
         super().__init__()
+        # Settings arrive from configs and the command line as any type: each is named if wrong.
+        check_ints("", ("n_angles", n_angles, 2), ("n_radii", n_radii, 2), ("window", window, 0), ("refine", refine, 0))
+        for name, value in (("min_radius", min_radius), ("max_radius", max_radius)):
+            check_number(name, value, low=0.0, high=1.0, low_open=True)
         log_polar_grid(8, 8, n_angles, n_radii, min_radius, max_radius)  # validates the grid
         check_rotation_scale_correlation(rotation_scale_correlation)
         for name, value in (("highpass", highpass), ("log_spectrum", log_spectrum), ("resolve_180", resolve_180)):
             check_bool(name, value)
         rotation_sigma = sigma if rotation_sigma is None else rotation_sigma
         rotation_temperature = temperature if rotation_temperature is None else rotation_temperature
-        if sigma < 0 or rotation_sigma < 0:
-            raise ValueError(f"sigma and rotation_sigma must be >= 0 pixels, got {sigma} and {rotation_sigma}")
-        if not (temperature > 0 and rotation_temperature > 0):
-            raise ValueError(f"temperatures must be positive, got {temperature} and {rotation_temperature}")
-        if window is not None and window < 0:
-            raise ValueError(f"window must be >= 0 or None, got {window}")
+        for name, value in (("sigma", sigma), ("rotation_sigma", rotation_sigma)):
+            check_number(name, value, low=0.0)
+        for name, value in (("temperature", temperature), ("rotation_temperature", rotation_temperature)):
+            check_number(name, value, low=0.0, low_open=True)
         if scale_range is not None:
             _scale_mask(4, 1.0, tuple(scale_range), "cpu", torch.float32)  # validates the range
         self.rotation_scale_options = dict(
@@ -529,8 +531,6 @@ class PhaseCorrelationEstimator(nn.Module):
             relative=True,
             rotation_range=check_rotation_range(rotation_range),
         )
-        if refine < 0:
-            raise ValueError(f"refine must be >= 0, got {refine}")
         self.refine = refine
         window_grid_shifts(8, 8, spectrum_window_grid, spectrum_window_step)  # validates them
         self.spectrum_window = (spectrum_window_grid, spectrum_window_step)
