@@ -223,8 +223,17 @@ _TRAINER_INTS = {"max_epochs": -1, "min_epochs": 0, "max_steps": -1, "num_nodes"
 
 
 def _check_trainer(cfg: DictConfig) -> None:
-    from ._validate import check_int, check_number
+    import torch
+
+    from ._validate import check_number
     from .training.precision import AUTO, LIGHTNING_PRECISIONS
+
+    accelerator = str(cfg.trainer.get("accelerator", "auto"))
+    if accelerator in ("gpu", "cuda") and not (torch.cuda.is_available() or torch.backends.mps.is_available()):
+        raise ValueError(
+            f"trainer.accelerator={accelerator}: this machine has no GPU that torch can use "
+            f"(torch {torch.__version__}); use trainer=auto or trainer=cpu"
+        )
 
     for key, low in _TRAINER_INTS.items():
         if cfg.trainer.get(key) is not None:
