@@ -107,22 +107,13 @@ def _pair_matcher(
     """``predict``'s matcher of ``(B, C, H, W)`` pairs and its input check (raises ``ValueError``
     naming the problem): the checkpoint's DPCN, or without ``ckpt_path`` the classical estimator
     with the ``registration`` settings."""
-    if cfg.ckpt_path:
-        from .training.module import load_matcher
+    from .training.module import ClassicalModule, load_matcher
 
+    if cfg.ckpt_path:
         module = load_matcher(cfg.ckpt_path, device, **inference_settings(cfg))
         return module.match, module.model.check_inputs
-    import torch
-
-    from .estimator import PhaseCorrelationEstimator
-
-    estimator = PhaseCorrelationEstimator(**OmegaConf.to_container(cfg.registration, resolve=True)).to(device)
-
-    def match(template: Tensor, source: Tensor) -> Pose:
-        with torch.no_grad():
-            return estimator(template, source)
-
-    return match, estimator.check_inputs
+    classical = ClassicalModule(**OmegaConf.to_container(cfg.registration, resolve=True)).to(device)
+    return classical.match, classical.estimator.check_inputs
 
 
 def run_predict(cfg: DictConfig) -> None:
