@@ -117,6 +117,17 @@ def test_paper_difficulty_experiment_sets_the_appearance_change(data):
     assert dm.datasets["test"].kind == data.removeprefix("sim_")
 
 
+def test_paper_table1_experiment_is_the_measured_recipe():
+    """experiment=paper_table1 spells the README's Table 1 recipe: the same config as its
+    measured command line; a data= on the command line still wins."""
+    measured = compose_config(
+        "data=sim_dynamic", "data.dataset.appearance_change=0.3", "model.net.log_spectrum=true", "rotation_views=4"
+    )
+    assert compose_config("experiment=paper_table1") == measured
+    hetero = compose_config("experiment=paper_table1", "data=sim_heterogeneous")
+    assert hetero.data.name == "sim_heterogeneous" and hetero.data.dataset.appearance_change == 0.3
+
+
 @pytest.mark.parametrize(
     "args,fraction",
     [
