@@ -9,10 +9,13 @@ accuracy within the paper's thresholds, the strict accuracies, and the time per 
     python benchmarks/bench_training.py --data sim_heterogeneous --evaluate sim_heterogeneous,sim_dynamic
     # Table 2/3 (maps): l2sat on the built-in scenes; held-out region (validate) and held-out scene (test)
     python benchmarks/bench_training.py --data l2sat --stages validate,test   # 5 epochs: the data config's default
+    # the paper's Table 1 setting (trains on the dynamic pairs the experiment picks; 4 views)
+    python benchmarks/bench_training.py --evaluate sim_heterogeneous,sim_dynamic --ckpt last -- experiment=paper_table1
 
 Everything after ``--`` is passed to ``fit`` as Hydra overrides; the evaluations repeat those of
 the data (``data.*``: e.g. ``data.root=`` or ``data.builtin_scenes=``, also those an
-``experiment=`` sets), ``image_size``, ``channels`` and ``seed``. Outputs go to ``--out``.
+``experiment=`` sets), ``image_size``, ``channels``, ``seed`` and the inference settings
+(``rotation_views=``...). Outputs go to ``--out``.
 """
 
 from __future__ import annotations
@@ -35,6 +38,14 @@ COLUMNS = [  # (metrics key, table header); {t} is the data set's translation th
     ("mse_rot", "E_rot"), ("acc_rot@1", "Acc_rot@1"), ("mse_scale", "E_scale"), ("acc_scale@0.2", "Acc_s@0.2"),
     ("acc_x@1", "x@1px"), ("acc_y@1", "y@1px"), ("acc_rot@0.5", "rot@0.5"), ("acc_scale@0.02", "s@0.02"),
 ]  # fmt: skip
+
+
+# Top-level keys the evaluations repeat: what the model is built for, the seed, and the
+# checkpoint's inference settings (fit ignores those; validate and test apply them).
+REPEATED = (
+    "image_size", "channels", "seed",
+    "rotation_hypotheses", "spectrum_window_grid", "rotation_views", "unet_dtype", "inference_radii", "rotation_range",
+)  # fmt: skip
 
 
 def dpcn(*args: str, log: Path) -> float:
@@ -68,16 +79,19 @@ def experiment_overrides(name: str) -> list[str]:
             else:
                 flat.append(f"{prefix}{key}={json.dumps(value)}")
 
-    walk(OmegaConf.to_container(OmegaConf.load(path)), "")
+    node = OmegaConf.to_container(OmegaConf.load(path))
+    node.pop("defaults", None)  # the config groups it picks (data=...): fit's, and --evaluate's
+    walk(node, "")
     return flat
 
 
 def evaluation_overrides(overrides: list[str]) -> list[str]:
     """The fit overrides that the evaluations repeat: the image size and channels (the model is
-    built for them), the seed, and every ``data.`` key (where the maps are, how many built-in
-    scenes, pose ranges, ``min_valid``...: the pairs evaluated must come from the data trained
-    on), also those an ``experiment=`` sets (the command line's own win, as in fit). Keys of the
-    training alone (``data.epoch_size``, ``data.batch_size``...) are harmless there."""
+    built for them), the seed, the checkpoint's inference settings (``rotation_views``...), and
+    every ``data.`` key (where the maps are, how many built-in scenes, pose ranges,
+    ``min_valid``...: the pairs evaluated must come from the data trained on), also those an
+    ``experiment=`` sets (the command line's own win, as in fit). Keys of the training alone
+    (``data.epoch_size``, ``data.batch_size``...) are harmless there."""
 
     def key(override: str) -> str:
         return override.split("=")[0].lstrip("+~")
@@ -89,32 +103,35 @@ def evaluation_overrides(overrides: list[str]) -> list[str]:
             expanded += [e for e in experiment_overrides(o.split("=", 1)[1]) if key(e) not in given]
         else:
             expanded.append(o)
-    keys = ("image_size", "channels", "seed")
-    return [o for o in expanded if key(o) in keys or key(o).startswith("data.")]
+    return [o for o in expanded if key(o) in REPEATED or key(o).startswith("data.")]
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--data", default="sim_heterogeneous", help="training data config")
-    parser.add_argument("--evaluate", default=None, help="comma-separated data configs to evaluate (default: --data)")
+    parser.add_argument(
+        "--data", default=None, help="training data config (default: the config's, or the one an experiment= picks)"
+    )
+    parser.add_argument("--evaluate", default=None, help="data configs to evaluate, comma-separated (default: its own)")
     parser.add_argument("--stages", default="test", help="validate (held-out region/val set), test, or both")
     parser.add_argument("--ckpt", default="best", choices=["best", "last"])
     parser.add_argument("--out", default=None, help="output folder (default: outputs/bench/<data>-<time>)")
     parser.add_argument("overrides", nargs="*", help="Hydra overrides for fit (after --)")
     args = parser.parse_args()
-    out = Path(args.out or f"outputs/bench/{args.data}-{datetime.now():%Y-%m-%d_%H-%M-%S}").resolve()
+    out = Path(args.out or f"outputs/bench/{args.data or 'fit'}-{datetime.now():%Y-%m-%d_%H-%M-%S}").resolve()
     out.mkdir(parents=True, exist_ok=True)
 
     fit_dir = out / "fit"
-    fit_seconds = dpcn("fit", f"data={args.data}", *args.overrides, f"hydra.run.dir={fit_dir}", log=out / "fit.log")
+    fit_args = ([f"data={args.data}"] if args.data else []) + args.overrides
+    fit_seconds = dpcn("fit", *fit_args, f"hydra.run.dir={fit_dir}", log=out / "fit.log")
+    trained = OmegaConf.load(fit_dir / ".hydra" / "config.yaml").data.name  # as composed by fit
     ckpts = fit_dir / "checkpoints"
     best = sorted(ckpts.glob("best-*.ckpt"))
     ckpt = best[-1] if args.ckpt == "best" and best else ckpts / "last.ckpt"
-    print(f"fit data={args.data} {' '.join(args.overrides)}: {fit_seconds / 60:.1f} min; evaluating {ckpt.name}")
+    print(f"fit data={trained} {' '.join(args.overrides)}: {fit_seconds / 60:.1f} min; evaluating {ckpt.name}")
 
     shared = evaluation_overrides(args.overrides)
     rows = []
-    for data in (args.evaluate or args.data).split(","):
+    for data in (args.evaluate or trained).split(","):
         for stage in args.stages.split(","):
             for label, model in (("DPCN", [f"ckpt_path={ckpt}"]), ("classical", ["model=classical"])):
                 run = out / f"{stage}-{data}-{label}"
