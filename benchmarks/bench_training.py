@@ -123,7 +123,7 @@ def main() -> None:
     fit_dir = out / "fit"
     fit_args = ([f"data={args.data}"] if args.data else []) + args.overrides
     fit_seconds = dpcn("fit", *fit_args, f"hydra.run.dir={fit_dir}", log=out / "fit.log")
-    trained = OmegaConf.load(fit_dir / ".hydra" / "config.yaml").data.name  # as composed by fit
+    trained = args.data or OmegaConf.load(fit_dir / ".hydra" / "config.yaml").data.name  # as fit composed it
     ckpts = fit_dir / "checkpoints"
     best = sorted(ckpts.glob("best-*.ckpt"))
     ckpt = best[-1] if args.ckpt == "best" and best else ckpts / "last.ckpt"
