@@ -106,6 +106,14 @@ def evaluation_overrides(overrides: list[str]) -> list[str]:
     return [o for o in expanded if key(o) in REPEATED or key(o).startswith("data.")]
 
 
+def trained_data(fit_dir: Path) -> str:
+    """The data config a fit run trained on, as fit composed it (an experiment may pick it)."""
+    config = fit_dir / ".hydra" / "config.yaml"
+    if not config.is_file():
+        sys.exit(f"{config} is missing (hydra.output_subdir=null?): pass --data to name the data trained on")
+    return OmegaConf.load(config).data.name
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument(
@@ -123,7 +131,7 @@ def main() -> None:
     fit_dir = out / "fit"
     fit_args = ([f"data={args.data}"] if args.data else []) + args.overrides
     fit_seconds = dpcn("fit", *fit_args, f"hydra.run.dir={fit_dir}", log=out / "fit.log")
-    trained = args.data or OmegaConf.load(fit_dir / ".hydra" / "config.yaml").data.name  # as fit composed it
+    trained = args.data or trained_data(fit_dir)
     ckpts = fit_dir / "checkpoints"
     best = sorted(ckpts.glob("best-*.ckpt"))
     ckpt = best[-1] if args.ckpt == "best" and best else ckpts / "last.ckpt"

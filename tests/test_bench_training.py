@@ -4,6 +4,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
 from omegaconf import OmegaConf
 
 from .conftest import compose_config, load_benchmark
@@ -70,3 +71,12 @@ def test_a_run_evaluates_the_data_an_experiment_trains_on(tmp_path):
     assert fit.data.name == "sim_dynamic" and fit.model.net.log_spectrum is True
     test = OmegaConf.load(out / "test-sim_dynamic-DPCN" / ".hydra" / "config.yaml")
     assert test.data.dataset.appearance_change == 0.3 and test.rotation_views == 4
+
+
+def test_the_trained_data_is_read_from_the_fit_run(tmp_path):
+    bench = load_benchmark("bench_training")
+    with pytest.raises(SystemExit, match=r"config.yaml is missing .*pass --data"):
+        bench.trained_data(tmp_path)
+    (tmp_path / ".hydra").mkdir()
+    OmegaConf.save(compose_config("experiment=paper_table1"), tmp_path / ".hydra" / "config.yaml")
+    assert bench.trained_data(tmp_path) == "sim_dynamic"
