@@ -32,6 +32,8 @@ from pathlib import Path
 
 from omegaconf import OmegaConf
 
+from dpcn.cli import INFERENCE_KEYS
+
 CONF = Path(__file__).resolve().parents[1] / "conf"
 COLUMNS = [  # (metrics key, table header); {t} is the data set's translation threshold
     ("mse_x", "E_x"), ("acc_x@{t}", "Acc_x@{t}"), ("mse_y", "E_y"), ("acc_y@{t}", "Acc_y@{t}"),
@@ -42,10 +44,7 @@ COLUMNS = [  # (metrics key, table header); {t} is the data set's translation th
 
 # Top-level keys the evaluations repeat: what the model is built for, the seed, and the
 # checkpoint's inference settings (fit ignores those; validate and test apply them).
-REPEATED = (
-    "image_size", "channels", "seed",
-    "rotation_hypotheses", "spectrum_window_grid", "rotation_views", "unet_dtype", "inference_radii", "rotation_range",
-)  # fmt: skip
+REPEATED = ("image_size", "channels", "seed", *INFERENCE_KEYS)
 
 
 def dpcn(*args: str, log: Path) -> float:

@@ -89,16 +89,15 @@ def _resolve_device(name: str) -> str:
     return name
 
 
+# Top-level keys that override a checkpoint's inference settings (validate/test/predict; fit ignores them).
+INFERENCE_KEYS = (
+    "rotation_hypotheses", "spectrum_window_grid", "rotation_views", "unet_dtype", "inference_radii", "rotation_range",
+)  # fmt: skip
+
+
 def inference_settings(cfg: DictConfig) -> dict[str, int | str | None]:
     """The top-level overrides of a checkpoint's inference settings (``None``: keep)."""
-    return {
-        "rotation_hypotheses": cfg.rotation_hypotheses,
-        "spectrum_window_grid": cfg.spectrum_window_grid,
-        "rotation_views": cfg.rotation_views,
-        "unet_dtype": cfg.get("unet_dtype"),
-        "inference_radii": cfg.get("inference_radii"),
-        "rotation_range": cfg.get("rotation_range"),
-    }
+    return {key: cfg.get(key) for key in INFERENCE_KEYS}
 
 
 def _pair_matcher(
