@@ -295,10 +295,20 @@ class TestLocalMaxima:
         assert indices[0, 0].tolist() == [20, 30]
         # the two bumps 1 row and 2 columns apart make one peak (between them, nearer the taller)
         assert (indices[0, 1] - torch.tensor([6, 8])).abs().max() <= 1
-        for a in range(3):
-            for b in range(a):
-                assert (indices[0, a] - indices[0, b]).abs().max() > 4
-        torch.testing.assert_close(values[0], surface[0, indices[0, :, 0], indices[0, :, 1]])
+        assert (indices[0, 1] - indices[0, 0]).abs().max() > 4
+        torch.testing.assert_close(values[0, :2], surface[0, indices[0, :2, 0], indices[0, :2, 1]])
+        # two peaks, no third: the flanks of the broad peaks are not peaks of their own
+        assert values[0, 2] == -torch.inf
+
+    def test_a_flank_is_not_a_peak(self):
+        # one broad peak (sigma 4 bins) and a faint separate one: the second peak is the faint
+        # one, not the point just outside the first one's suppression square
+        surface = (gaussian_blob(64, 64, 20.0, 30.0, sigma=4.0) + 0.1 * gaussian_blob(64, 64, 50.0, 10.0))[None]
+        values, indices = local_maxima2d(surface, 2, radius=4)
+        assert indices[0].tolist() == [[20, 30], [50, 10]]
+        assert float(values[0, 1]) == pytest.approx(float(surface[0, 50, 10]))
+        _, wide = local_maxima2d(surface, 2, radius=2)  # the same with a narrower square
+        assert wide[0].tolist() == [[20, 30], [50, 10]]
 
     def test_circular_rows_suppress_across_the_seam(self):
         surface = torch.zeros(1, 16, 8)

@@ -124,14 +124,30 @@ def soft_argmax2d(
     return torch.stack([row, col], dim=-1)
 
 
+def _neighbourhood_max(surface: Tensor, radius: int, circular: tuple[bool, bool]) -> Tensor:
+    """``(B, H, W)`` maximum over each bin's ``(2 * radius + 1)``-square neighbourhood."""
+    for dim, wraps in zip((1, 2), circular, strict=True):
+        size = surface.shape[dim]
+        offsets = torch.arange(-radius, size + radius, device=surface.device)
+        if wraps:  # index the wrapped bins: works for any radius
+            padded = surface.index_select(dim, torch.remainder(offsets, size))
+        else:
+            pad = (0, 0, radius, radius) if dim == 1 else (radius, radius)
+            padded = nn.functional.pad(surface, pad, value=-torch.inf)
+        surface = padded.unfold(dim, 2 * radius + 1, 1).amax(dim=-1)
+    return surface
+
+
 def local_maxima2d(
     surface: Tensor, k: int, radius: int = 4, circular: tuple[bool, bool] = (False, False)
 ) -> tuple[Tensor, Tensor]:
     """The ``k`` highest peaks of each surface, at least ``radius`` bins apart on some axis.
 
-    Greedy non-maximum suppression: take the arg-max, blank its ``(2 * radius + 1)``-square
-    neighbourhood (wrapping on ``circular`` axes), repeat. Not differentiable (indices); refine
-    each peak with ``soft_argmax2d(surface, ..., window=w, peak=indices[:, j])``.
+    A peak is a bin that no bin of its ``(2 * radius + 1)``-square neighbourhood exceeds
+    (wrapping on ``circular`` axes), so the flank of a broad peak is never taken for another
+    one. Among those, greedy non-maximum suppression: take the highest, blank its
+    neighbourhood (which settles ties on a plateau), repeat. Not differentiable (indices);
+    refine each peak with ``soft_argmax2d(surface, ..., window=w, peak=indices[:, j])``.
 
     Args:
         surface: ``(B, H, W)`` scores.
@@ -149,9 +165,10 @@ def local_maxima2d(
         raise ValueError(f"k must be an integer in [1, {height * width}], got {k!r}")
     if radius < 0:
         raise ValueError(f"radius must be non-negative, got {radius}")
-    scores = surface.detach().clone()
     rows = torch.arange(height, device=surface.device)
     cols = torch.arange(width, device=surface.device)
+    scores = surface.detach()
+    scores = scores.masked_fill(scores < _neighbourhood_max(scores, radius, circular), -torch.inf)
     values, indices = [], []
     for _ in range(k):
         value, flat = scores.reshape(batch, -1).max(dim=-1)
