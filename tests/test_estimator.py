@@ -240,6 +240,21 @@ def test_rotation_scale_hypotheses_start_with_the_single_estimate():
         estimate_rotation_scale(t, s, window=None, hypotheses=2)
 
 
+def test_rotation_scale_hypotheses_are_not_the_flanks_of_a_broad_peak():
+    # A blurred surface (sigma 3 bins) spreads the true peak over more than the suppression
+    # square; the next hypotheses must be other peaks, not points on its flanks (an earlier
+    # release returned 40.0 deg at scales 1.07 and 1.13, with half the first peak's score).
+    image = photo("camera", (128, 128))
+    t = torch.from_numpy(image)[None, None]
+    s = torch.from_numpy(cv2_warp(image, 3.0, -2.0, 40.0, 1.1))[None, None]
+    rs = estimate_rotation_scale(t, s, window=3, hypotheses=3, sigma=3.0)
+    assert angle_error(rs.angle[0], 40.0) < 0.5 and abs(float(rs.scale[0]) - 1.1) < 0.01
+    apart = (rs.candidate_angle[0, 1:] - rs.candidate_angle[0, 0]).abs() > 5.0
+    apart |= (rs.candidate_scale[0, 1:].log() - rs.candidate_scale[0, 0].log()).abs() > 0.1
+    assert apart.all(), (rs.candidate_angle, rs.candidate_scale)
+    assert (rs.candidate_score[0, 1:] < 0.3 * rs.candidate_score[0, 0]).all()
+
+
 def test_source_window_shifts_keep_the_best_correlation_per_bin():
     image = photo("camera", (96, 96))
     t = torch.from_numpy(image)[None, None].double()
