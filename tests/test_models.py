@@ -414,6 +414,47 @@ def test_rotation_hypotheses_keep_a_right_first_peak_and_are_validated():
         small_dpcn(rotation_hypotheses=0)
 
 
+@pytest.mark.parametrize("rotation_range", [None, (0.0, 180.0)])
+def test_hypothesis_ratio_checks_the_further_peaks_of_ambiguous_pairs_only(rotation_range):
+    torch.manual_seed(0)
+    names = ("astronaut", "camera", "coffee", "chelsea", "rocket", "brick")
+    images = [photo(name, (128, 128)) for name in names]
+    # three true pairs and three templates against another photo, where phase 1 has no clear peak
+    sources = images[:3] + images[4:] + images[3:4]
+    warped = [cv2_warp(im, 6.0, -4.0, a, 1.1) for im, a in zip(sources, (35, 120, 80, 10, 150, 60), strict=True)]
+    t, s = (torch.from_numpy(np.stack(x))[:, None] for x in (images, warped))
+    model = DPCN(base_channels=2, depth=1, input_skip=True, image_size=(128, 128), rotation_range=rotation_range)
+    model.eval()
+    with torch.no_grad():
+        one = model(t, s)
+        model.rotation_hypotheses = 3
+        every = model(t, s)
+        scores = every.rotation_scale.candidate_score
+        model.hypothesis_ratio = float((scores[:, 1] / scores[:, 0]).median())  # about half are ambiguous
+        gated = model(t, s)
+    ambiguous = model.ambiguous_pairs(gated.rotation_scale.candidate_score)
+    assert 0 < int(ambiguous.sum()) < len(names)
+    changed = (every.pose.as_tensor() != one.pose.as_tensor()).any(dim=1)
+    assert (changed & ambiguous).any()  # a further peak wins somewhere, so the merge is exercised
+
+    def expected(further: torch.Tensor, first: torch.Tensor) -> torch.Tensor:  # every peak: ambiguous pairs only
+        return torch.where(ambiguous.view(-1, *[1] * (first.dim() - 1)), further, first)
+
+    torch.testing.assert_close(gated.pose.as_tensor(), expected(every.pose.as_tensor(), one.pose.as_tensor()))
+    torch.testing.assert_close(gated.unwarped_source, expected(every.unwarped_source, one.unwarped_source))
+    torch.testing.assert_close(gated.translation.surface, expected(every.translation.surface, one.translation.surface))
+    for name in ("t_template", "t_source"):
+        torch.testing.assert_close(gated.features[name], expected(every.features[name], one.features[name]))
+    model.hypothesis_ratio = 0.0  # every pair again
+    with torch.no_grad():
+        torch.testing.assert_close(model(t, s).pose.as_tensor(), every.pose.as_tensor())
+    for bad in (-0.1, 1.5, float("nan"), True, "0.5"):
+        with pytest.raises(ValueError, match=r"hypothesis_ratio must be a finite number in \[0, 1\]"):
+            model.hypothesis_ratio = bad
+    with pytest.raises(ValueError, match="hypothesis_ratio"):
+        small_dpcn(hypothesis_ratio=2)
+
+
 def test_spectrum_window_grid_shifts_and_validation():
     model = DPCN(base_channels=2, depth=1, image_size=(128, 128), rotation_scale_downsample=2)
     assert model.spectrum_window_shifts(64, 64, 1) == [(0, 0)]

@@ -326,6 +326,7 @@ def test_validate_and_test_print_the_paper_table(trained, tmp_path):
     # inference settings replace the checkpoint's
     inference = [
         "rotation_hypotheses=3",
+        "hypothesis_ratio=0.7",
         "spectrum_window_grid=3",
         "rotation_views=4",
         "unet_dtype=bfloat16",
@@ -338,10 +339,17 @@ def test_validate_and_test_print_the_paper_table(trained, tmp_path):
     )
     assert "acc_rot@1" in out.stdout
     matcher = load_matcher(
-        ckpt, rotation_hypotheses=2, spectrum_window_grid=5, rotation_views=8, unet_dtype="bfloat16", inference_radii=24
+        ckpt,
+        rotation_hypotheses=2,
+        hypothesis_ratio=0.5,
+        spectrum_window_grid=5,
+        rotation_views=8,
+        unet_dtype="bfloat16",
+        inference_radii=24,
     )
     model = matcher.model
     assert (model.rotation_hypotheses, model.spectrum_window_grid, model.rotation_views) == (2, 5, 8)
+    assert model.hypothesis_ratio == 0.5 and load_matcher(ckpt).model.hypothesis_ratio == 0.0
     assert model.unet_dtype == "bfloat16" and load_matcher(ckpt).model.unet_dtype == "float32"
     assert model.inference_radii == 24 and load_matcher(ckpt).model.inference_radii == 128  # tiny's, stored
     assert load_matcher(ckpt, inference_radii="trained").model.inference_radii is None  # n_radii
@@ -349,6 +357,7 @@ def test_validate_and_test_print_the_paper_table(trained, tmp_path):
         load_matcher(ckpt, inference_radii="all")
     for setting, message in [
         ("rotation_hypotheses=0", "rotation_hypotheses must be an integer >= 1, got 0"),
+        ("hypothesis_ratio=1.5", "hypothesis_ratio must be a finite number in [0, 1], got 1.5"),
         ("spectrum_window_grid=2", "spectrum_window_grid must be an odd integer >= 1, got 2"),
         ("rotation_views=9", "rotation_views must be an integer from 1 to 8, got 9"),
         ("unet_dtype=float16", "unet_dtype must be one of float32, bfloat16, got 'float16'"),

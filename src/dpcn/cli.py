@@ -91,7 +91,8 @@ def _resolve_device(name: str) -> str:
 
 # Top-level keys that override a checkpoint's inference settings (validate/test/predict; fit ignores them).
 INFERENCE_KEYS = (
-    "rotation_hypotheses", "spectrum_window_grid", "rotation_views", "unet_dtype", "inference_radii", "rotation_range",
+    "rotation_hypotheses", "hypothesis_ratio", "spectrum_window_grid", "rotation_views", "unet_dtype",
+    "inference_radii", "rotation_range",
 )  # fmt: skip
 
 

@@ -10,7 +10,9 @@ computed for the un-warped source and for its half-turn, and the stronger peak w
 conjugate-spectrum shortcut of the classical estimator does not apply here: a U-Net is not
 equivariant to half-turns.) With ``rotation_hypotheses = K > 1`` phase 2 checks the ``K``
 strongest phase-1 peaks the same way: a wrong rotation leaves no translation peak, so the
-strongest translation peak over the ``2 K`` candidates picks the pose. With
+strongest translation peak over the ``2 K`` candidates picks the pose; with
+``hypothesis_ratio = r > 0`` only the pairs whose second phase-1 peak reaches ``r`` times
+their first (the ambiguous ones) pay for that check, the others keep their first peak. With
 ``spectrum_window_grid = n > 1`` phase 1 also takes the source's spectrum under an ``n x n``
 grid of shifted windows and keeps the best correlation per log-polar bin: a translated
 source shares more content with the template under a window near its translated centre.
@@ -136,6 +138,12 @@ class DPCN(nn.Module):
         rotation_hypotheses: phase-1 peaks (rotation/scale hypotheses) that phase 2 checks at
             inference; each costs one more pair of phase-2 source U-Net passes. Training is
             unaffected (phase 1 learns from its own surface).
+        hypothesis_ratio: in ``[0, 1]``; with ``rotation_hypotheses > 1``, phase 2 checks a
+            pair's further peaks only when its second phase-1 peak is at least this fraction
+            of its first, and keeps the first peak of the other pairs (their pose is the one
+            hypothesis's). ``0``: every pair. A clear first peak is rarely wrong, so e.g.
+            ``0.7`` keeps nearly all of the hypotheses' gain for the cost of the ambiguous
+            pairs alone (README, Benchmarks).
         spectrum_window_grid, spectrum_window_step: at inference, phase 1 also correlates the
             template's spectrum with the source's under an ``n x n`` grid of windows shifted by
             multiples of ``spectrum_window_step`` (a fraction of the image side), the best per
@@ -198,6 +206,7 @@ class DPCN(nn.Module):
         learnable_temperature: bool = True,
         scale_range: tuple[float, float] | list[float] | None = (0.5, 2.0),
         rotation_hypotheses: int = 1,
+        hypothesis_ratio: float = 0.0,
         spectrum_window_grid: int = 1,
         spectrum_window_step: float = 0.125,
         rotation_views: int = 1,
@@ -271,6 +280,7 @@ class DPCN(nn.Module):
             scale_range = tuple(check_number("scale_range", v, low=0.0, low_open=True) for v in scale_range)
         self.scale_range = scale_range
         self.rotation_hypotheses = rotation_hypotheses
+        self.hypothesis_ratio = hypothesis_ratio
         window_grid_shifts(8, 8, spectrum_window_grid, spectrum_window_step)  # validates them
         self.spectrum_window_grid = spectrum_window_grid
         self.spectrum_window_step = float(spectrum_window_step)
@@ -299,6 +309,16 @@ class DPCN(nn.Module):
         if isinstance(value, bool) or not isinstance(value, int) or value < 1:
             raise ValueError(f"rotation_hypotheses must be an integer >= 1, got {value!r}")
         self._rotation_hypotheses = value
+
+    @property
+    def hypothesis_ratio(self) -> float:
+        """Second-to-first phase-1 peak ratio from which phase 2 checks a pair's further
+        peaks (``0``: every pair; settable on a loaded model)."""
+        return self._hypothesis_ratio
+
+    @hypothesis_ratio.setter
+    def hypothesis_ratio(self, value: float) -> None:
+        self._hypothesis_ratio = check_number("hypothesis_ratio", value, low=0.0, high=1.0)
 
     @property
     def spectrum_window_grid(self) -> int:
@@ -491,7 +511,13 @@ class DPCN(nn.Module):
         )
 
     def translation_turns(
-        self, template: Tensor, unwarped_source: Tensor, angle: Tensor, scale: Tensor, half_turn_too: bool = True
+        self,
+        template: Tensor,
+        unwarped_source: Tensor,
+        angle: Tensor,
+        scale: Tensor,
+        half_turn_too: bool = True,
+        template_features: Tensor | None = None,
     ) -> tuple[list[Translation], Tensor, tuple[Tensor, ...]]:
         """Phase 2 per half-turn hypothesis, without choosing: the source as un-warped and,
         with ``half_turn_too``, turned by half a turn (its own source U-Net pass: a CNN is not
@@ -501,6 +527,7 @@ class DPCN(nn.Module):
             template: ``(B, C, H, W)``.
             unwarped_source, angle, scale: ``(B * K, C, H, W)``, ``(B * K,)``, ``(B * K,)``,
                 ``K`` candidates per pair, pair-major.
+            template_features: the template's phase-2 features if already computed.
 
         Returns:
             one :class:`Translation` ``(B * K,)`` per hypothesis (upright first; the second's
@@ -508,7 +535,7 @@ class DPCN(nn.Module):
             the source's per hypothesis.
         """
         k = unwarped_source.shape[0] // template.shape[0]
-        ft = self.t_template(self.template_unet_input(template))
+        ft = self.t_template(self.template_unet_input(template)) if template_features is None else template_features
         turns = (unwarped_source, half_turn(unwarped_source)) if half_turn_too else (unwarped_source,)
         fs_all = self.t_source(torch.cat(turns)).chunk(len(turns))
         ft_k = ft.repeat_interleave(k, dim=0) if k > 1 else ft
@@ -525,6 +552,7 @@ class DPCN(nn.Module):
         resolve_180: bool = True,
         valid: Tensor | None = None,
         rotation_range: tuple[float, float] | None = None,
+        template_features: Tensor | None = None,
     ) -> tuple[Translation, dict[str, Tensor], Tensor]:
         """Phase 2 on sources already un-warped by ``angle``/``scale``; the strongest
         translation peak over the candidates wins.
@@ -538,6 +566,7 @@ class DPCN(nn.Module):
             valid: ``(B, K)`` candidates allowed to win (``None``: all).
             rotation_range: with ``resolve_180``, a turn whose angle lies further outside this
                 range than the other turn's cannot win.
+            template_features: the template's phase-2 features if already computed.
 
         Returns:
             the winning :class:`Translation` ``(B,)``, the phase-2 features of the winner, and
@@ -547,7 +576,9 @@ class DPCN(nn.Module):
         k = unwarped_source.shape[0] // batch
         if k < 1 or unwarped_source.shape[0] != batch * k:
             raise ValueError(f"{unwarped_source.shape[0]} un-warped sources for {batch} templates (need B * K)")
-        results, ft, fs_all = self.translation_turns(template, unwarped_source, angle, scale, resolve_180)
+        results, ft, fs_all = self.translation_turns(
+            template, unwarped_source, angle, scale, resolve_180, template_features
+        )
 
         def candidates(values: list[Tensor]) -> Tensor:  # (B * K, ...) per turn -> (B, K * turns, ...)
             return torch.stack([v.view(batch, k, *v.shape[1:]) for v in values], dim=2).flatten(1, 2)
@@ -588,22 +619,56 @@ class DPCN(nn.Module):
             rs, features = self.rotation_scale(
                 template, source, k, self.spectrum_window_grid, self.rotation_views, radii=self.inference_radii
             )
-            angle, scale = rs.candidate_angle.flatten(), rs.candidate_scale.flatten()  # (B * K,)
+            angle = rs.candidate_angle  # (B, K)
             known = self.rotation_range
             settled = known is not None and known[1] - known[0] <= 180.0
             if settled:  # the range picks the half-turn: phase 2 runs on that one alone
                 angle = angle + 180.0 * choose_half_turn(angle, known).to(angle.dtype)
-            candidates = source.repeat_interleave(k, dim=0) if k > 1 else source
-            unwarped = unwarp_rotation_scale(candidates, angle, scale)
             valid = torch.isfinite(rs.candidate_score)
-            tr, t_features, choice = self.translation(
-                template, unwarped, angle, scale, resolve_180=not settled, valid=valid, rotation_range=known
-            )
-        rows = torch.arange(template.shape[0], device=choice.device)
-        scale = rs.candidate_scale[rows, choice]
-        unwarped = unwarped.view(-1, k, *unwarped.shape[1:])[rows, choice]
+
+            def phase2(rows: Tensor | slice, first: int, stop: int, ft: Tensor | None = None):
+                """Phase 2 on candidates ``first:stop`` of the pairs ``rows``: the winner's
+                translation, features, candidate index and un-warped source."""
+                n = stop - first
+                candidates = source[rows].repeat_interleave(n, dim=0) if n > 1 else source[rows]
+                a, s = angle[rows, first:stop].flatten(), rs.candidate_scale[rows, first:stop].flatten()
+                unwarped = unwarp_rotation_scale(candidates, a, s)
+                tr, t_features, choice = self.translation(
+                    template[rows], unwarped, a, s, not settled, valid[rows, first:stop], known, ft
+                )
+                picked = torch.arange(len(choice), device=choice.device)
+                return tr, t_features, choice + first, unwarped.view(-1, n, *unwarped.shape[1:])[picked, choice]
+
+            if k == 1 or self.hypothesis_ratio == 0:  # every pair, all its candidates at once
+                tr, t_features, choice, unwarped = phase2(slice(None), 0, k)
+            else:  # every pair's first peak, then the further peaks of the ambiguous pairs
+                tr, t_features, choice, unwarped = phase2(slice(None), 0, 1)
+                rows = self.ambiguous_pairs(rs.candidate_score).nonzero().squeeze(1)
+                if len(rows):
+                    further = phase2(rows, 1, k, t_features["t_template"][rows])
+                    better = further[0].confidence > tr.confidence[rows]  # the strongest peak wins
+                    won = rows[better]
+
+                    def merge(first: Tensor, other: Tensor) -> Tensor:
+                        merged = first.clone()
+                        merged[won] = other[better]
+                        return merged
+
+                    fields = ("tx", "ty", "angle", "confidence", "surface")
+                    tr = Translation(*(merge(getattr(tr, f), getattr(further[0], f)) for f in fields))
+                    t_features = {**t_features, "t_source": merge(t_features["t_source"], further[1]["t_source"])}
+                    choice, unwarped = merge(choice, further[2]), merge(unwarped, further[3])
+        scale = rs.candidate_scale[torch.arange(template.shape[0], device=choice.device), choice]
         pose = Pose(tr.tx, tr.ty, wrap_angle(tr.angle), scale, tr.confidence)
         return DPCNOutput(pose, rs, tr, unwarped, {**features, **t_features})
+
+    def ambiguous_pairs(self, candidate_score: Tensor) -> Tensor:
+        """``(B,)`` the pairs whose second phase-1 peak reaches ``hypothesis_ratio`` times
+        their first (``candidate_score``: ``(B, K)``, strongest first)."""
+        if candidate_score.shape[1] < 2:
+            return torch.zeros(candidate_score.shape[0], dtype=torch.bool, device=candidate_score.device)
+        second = candidate_score[:, 1]
+        return torch.isfinite(second) & (second >= self.hypothesis_ratio * candidate_score[:, 0])
 
     @torch.no_grad()
     def match(self, template: Tensor, source: Tensor, chunk_size: int | None = None) -> Pose:

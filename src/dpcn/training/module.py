@@ -387,6 +387,7 @@ def load_matcher(
     ckpt_path: str | Path,
     map_location: str | torch.device = "cpu",
     rotation_hypotheses: int | None = None,
+    hypothesis_ratio: float | None = None,
     spectrum_window_grid: int | None = None,
     rotation_views: int | None = None,
     unet_dtype: str | None = None,
@@ -395,7 +396,7 @@ def load_matcher(
 ) -> DPCNModule:
     """Load a DPCN checkpoint ready for ``.match(template, source) -> Pose`` (eval mode).
 
-    ``rotation_hypotheses``, ``spectrum_window_grid``, ``rotation_views``, ``unet_dtype``,
+    ``rotation_hypotheses``, ``hypothesis_ratio``, ``spectrum_window_grid``, ``rotation_views``, ``unet_dtype``,
     ``inference_radii`` and ``rotation_range`` replace the checkpoint's inference settings of
     those names (see :class:`~dpcn.models.DPCN`); ``None`` keeps them (``rotation_range=[-180,
     180]`` is the full circle, no prior). ``inference_radii="trained"`` infers with the radii the model was
@@ -413,6 +414,7 @@ def load_matcher(
         raise CheckpointError(f"checkpoint {path} does not fit this version of dpcn: {error}") from None
     settings = {
         "rotation_hypotheses": rotation_hypotheses,
+        "hypothesis_ratio": hypothesis_ratio,
         "spectrum_window_grid": spectrum_window_grid,
         "rotation_views": rotation_views,
         "unet_dtype": unet_dtype,
