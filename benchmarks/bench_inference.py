@@ -9,6 +9,7 @@ the cost does not depend on them.
 
     python benchmarks/bench_inference.py [--device cpu|cuda] [--threads 2] [--batch 32] [--ckpt last.ckpt]
         [--window-grids 1,3] [--hypotheses 1,3] [--views 1,2,8]   # also time other stage-1 inference settings
+        [--hypothesis-ratios 0,0.7] [--pairs heterogeneous]      # gated hypotheses: their cost depends on the pairs
         [--radii 128,256]                                         # DPCN.inference_radii
         [--unet-dtype bfloat16]                                   # DPCN.unet_dtype
         [--rotation-range 0,180]                                  # also with DPCN.rotation_range (one phase-2 pass)
@@ -28,6 +29,7 @@ import torch
 from omegaconf import OmegaConf
 
 from dpcn import PhaseCorrelationEstimator
+from dpcn.data.simulation import SIM_KINDS, SimulatedPairs
 from dpcn.models import DPCN
 from dpcn.models.dpcn import UNET_DTYPES
 
@@ -49,6 +51,7 @@ TIMED_SETTINGS = (  # the preset's architecture and its cost-bearing inference s
     "highpass",
     "log_spectrum",
     "rotation_hypotheses",
+    "hypothesis_ratio",
     "spectrum_window_grid",
     "spectrum_window_step",
     "rotation_views",
@@ -104,6 +107,14 @@ def float_pair(text: str) -> tuple[float, float]:
     return low, high
 
 
+def float_list(text: str) -> list[float]:
+    """argparse type: comma-separated numbers (each setting's own check comes later)."""
+    try:
+        return [float(v) for v in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated numbers, got {text!r}") from None
+
+
 def int_list(text: str) -> list[int]:
     """argparse type: comma-separated integers (each setting's own check comes later)."""
     try:
@@ -123,6 +134,17 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--ckpt", default=None, help="time this checkpoint instead of randomly initialised presets")
     parser.add_argument(
         "--hypotheses", type=int_list, default=None, help="comma-separated rotation_hypotheses values to time"
+    )
+    parser.add_argument(
+        "--hypothesis-ratios", type=float_list, default=None, help="comma-separated hypothesis_ratio values to time"
+    )
+    parser.add_argument(
+        "--pairs",
+        choices=SIM_KINDS,
+        default=None,
+        help="time the first --batch simulated test pairs of this kind instead of noise: the cost of "
+        "hypothesis_ratio depends on the pairs (and, with --ckpt, on trained weights); the 1-pair column "
+        "is then the first pair's",
     )
     parser.add_argument(
         "--window-grids", type=int_list, default=None, help="comma-separated spectrum_window_grid values to time"
@@ -154,6 +176,7 @@ def main(argv: list[str] | None = None) -> None:
     for option, values, short in (
         ("spectrum_window_grid", args.window_grids, "grid"),
         ("rotation_hypotheses", args.hypotheses, "K"),
+        ("hypothesis_ratio", args.hypothesis_ratios, "ratio"),
         ("rotation_views", args.views, "views"),
         ("inference_radii", args.radii, "radii"),
         ("rotation_range", args.rotation_range and [None, args.rotation_range], "range"),
@@ -173,8 +196,13 @@ def main(argv: list[str] | None = None) -> None:
             models[f"{label}, {args.unet_dtype} U-Nets"] = models.pop(label)
     models["classical (no U-Nets)"] = PhaseCorrelationEstimator()
 
-    generator = torch.Generator().manual_seed(0)
-    pairs = torch.rand(2, args.batch, 1, args.size, args.size, generator=generator).to(device)
+    if args.pairs:  # the test split of the sim data configs (seed 2)
+        data = SimulatedPairs(args.pairs, length=args.batch, size=args.size, seed=2)
+        items = [data[i] for i in range(args.batch)]
+        pairs = torch.stack([torch.stack([item[side] for item in items]) for side in ("template", "source")])
+    else:
+        pairs = torch.rand(2, args.batch, 1, args.size, args.size, generator=torch.Generator().manual_seed(0))
+    pairs = pairs.to(device)
 
     def run(model: torch.nn.Module, n: int) -> None:
         # DPCN.match: what users call (batches chunked on CPUs); the classical estimator has

@@ -47,12 +47,21 @@ def test_a_rotation_range_adds_a_variant_per_model(bench, capsys):
     assert labels == ["DPCN tiny, range=None", "DPCN tiny, range=(0.0, 180.0)", "classical (no U-Nets)"]
 
 
+def test_gated_hypotheses_on_simulated_pairs(bench, capsys):
+    args = ["--presets", "tiny", "--size", "64", "--batch", "2", "--rounds", "1", "--pairs", "heterogeneous"]
+    bench.main([*args, "--hypotheses", "3", "--hypothesis-ratios", "0,0.7"])
+    lines = capsys.readouterr().out.splitlines()
+    labels = [re.split(r"\s{2,}", line.strip())[0] for line in lines[2:] if line.strip()]
+    assert labels == ["DPCN tiny, K=3, ratio=0.0", "DPCN tiny, K=3, ratio=0.7", "classical (no U-Nets)"]
+
+
 @pytest.mark.parametrize(
     "args,message",
     [
         (["--rounds", "0"], "argument --rounds: expected an integer >= 1, got '0'"),
         (["--radii", "abc"], "argument --radii: expected comma-separated integers, got 'abc'"),
         (["--radii", "1"], "inference_radii must be an integer >= 2 or None, got 1"),
+        (["--hypothesis-ratios", "2"], "hypothesis_ratio must be a finite number in [0, 1], got 2.0"),
         (["--rotation-range", "abc"], "argument --rotation-range: expected LOW,HIGH, got 'abc'"),
         (
             ["--rotation-range", "0,400"],
