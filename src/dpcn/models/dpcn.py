@@ -626,7 +626,9 @@ class DPCN(nn.Module):
                 angle = angle + 180.0 * choose_half_turn(angle, known).to(angle.dtype)
             valid = torch.isfinite(rs.candidate_score)
 
-            def phase2(rows: Tensor | slice, first: int, stop: int, ft: Tensor | None = None):
+            def phase2(
+                rows: Tensor | slice, first: int, stop: int, ft: Tensor | None = None
+            ) -> tuple[Translation, dict[str, Tensor], Tensor, Tensor]:
                 """Phase 2 on candidates ``first:stop`` of the pairs ``rows``: the winner's
                 translation, features, candidate index and un-warped source."""
                 n = stop - first
