@@ -167,9 +167,12 @@ def main(argv: list[str] | None = None) -> None:
 
     models: dict[str, torch.nn.Module] = {}
     if args.ckpt:
-        from dpcn.training import load_matcher
+        from dpcn.training import CheckpointError, load_matcher
 
-        models[f"DPCN {args.ckpt}"] = load_matcher(args.ckpt).model
+        try:
+            models[f"DPCN {args.ckpt}"] = load_matcher(args.ckpt).model
+        except CheckpointError as error:
+            parser.error(str(error))
     else:
         for name in args.presets.split(","):
             models[f"DPCN {name}"] = DPCN(image_size=(args.size, args.size), **preset(name))
@@ -203,6 +206,11 @@ def main(argv: list[str] | None = None) -> None:
     else:
         pairs = torch.rand(2, args.batch, 1, args.size, args.size, generator=torch.Generator().manual_seed(0))
     pairs = pairs.to(device)
+    for model in models.values():
+        try:
+            model.check_inputs(pairs[0, :1], pairs[1, :1])  # e.g. a checkpoint built for another --size
+        except ValueError as error:
+            parser.error(str(error))
 
     def run(model: torch.nn.Module, n: int) -> None:
         # DPCN.match: what users call (batches chunked on CPUs); the classical estimator has

@@ -62,6 +62,7 @@ def test_gated_hypotheses_on_simulated_pairs(bench, capsys):
         (["--radii", "abc"], "argument --radii: expected comma-separated integers, got 'abc'"),
         (["--radii", "1"], "inference_radii must be an integer >= 2 or None, got 1"),
         (["--hypothesis-ratios", "2"], "hypothesis_ratio must be a finite number in [0, 1], got 2.0"),
+        (["--ckpt", "no/such.ckpt"], "checkpoint not found: no/such.ckpt"),
         (["--rotation-range", "abc"], "argument --rotation-range: expected LOW,HIGH, got 'abc'"),
         (
             ["--rotation-range", "0,400"],
