@@ -121,11 +121,33 @@ def test_paper_table1_experiment_is_the_measured_recipe():
     """experiment=paper_table1 spells the README's Table 1 recipe: the same config as its
     measured command line; a data= on the command line still wins."""
     measured = compose_config(
-        "data=sim_dynamic", "data.dataset.appearance_change=0.3", "model.net.log_spectrum=true", "rotation_views=4"
+        "data=sim_dynamic",
+        "data.dataset.appearance_change=0.3",
+        "model.net.log_spectrum=true",
+        "rotation_views=4",
+        "model.net.rotation_hypotheses=1",  # measured when tiny checked one stage-1 peak
+        "model.net.hypothesis_ratio=0",
     )
     assert compose_config("experiment=paper_table1") == measured
     hetero = compose_config("experiment=paper_table1", "data=sim_heterogeneous")
     assert hetero.data.name == "sim_heterogeneous" and hetero.data.dataset.appearance_change == 0.3
+
+
+@pytest.mark.parametrize(
+    "args,hypotheses",
+    [
+        ([], (2, 0.7)),  # tiny: a second stage-1 peak for the ambiguous pairs
+        (["data=sim_dynamic"], (2, 0.7)),
+        (["experiment=paper_table1"], (1, 0.0)),  # the recipe as measured
+        (["data=l2sat"], (1, 0.0)),  # the map models (tiny_full) as measured
+        (["data=s2d"], (1, 0.0)),
+        (["data=s2sat", "model.net.rotation_hypotheses=3"], (3, 0.0)),
+        (["model=paper"], (1, 0.0)),
+    ],
+)
+def test_stage1_hypotheses_per_config(args, hypotheses):
+    net = compose_config(*args).model.net
+    assert (net.rotation_hypotheses, net.hypothesis_ratio) == hypotheses
 
 
 @pytest.mark.parametrize(

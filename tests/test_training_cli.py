@@ -340,7 +340,7 @@ def test_validate_and_test_print_the_paper_table(trained, tmp_path):
     assert "acc_rot@1" in out.stdout
     matcher = load_matcher(
         ckpt,
-        rotation_hypotheses=2,
+        rotation_hypotheses=3,
         hypothesis_ratio=0.5,
         spectrum_window_grid=5,
         rotation_views=8,
@@ -348,8 +348,9 @@ def test_validate_and_test_print_the_paper_table(trained, tmp_path):
         inference_radii=24,
     )
     model = matcher.model
-    assert (model.rotation_hypotheses, model.spectrum_window_grid, model.rotation_views) == (2, 5, 8)
-    assert model.hypothesis_ratio == 0.5 and load_matcher(ckpt).model.hypothesis_ratio == 0.0
+    assert (model.rotation_hypotheses, model.spectrum_window_grid, model.rotation_views) == (3, 5, 8)
+    stored = load_matcher(ckpt).model  # tiny's gated second peak
+    assert (model.hypothesis_ratio, stored.rotation_hypotheses, stored.hypothesis_ratio) == (0.5, 2, 0.7)
     assert model.unet_dtype == "bfloat16" and load_matcher(ckpt).model.unet_dtype == "float32"
     assert model.inference_radii == 24 and load_matcher(ckpt).model.inference_radii == 128  # tiny's, stored
     assert load_matcher(ckpt, inference_radii="trained").model.inference_radii is None  # n_radii
