@@ -21,6 +21,14 @@ def test_rounds_run_every_call_in_turn_after_its_warmup(bench):
     assert set(medians) == {"a", "b", "c"} and all(t >= 0 for t in medians.values())
 
 
+def test_a_stream_matches_each_pair_alone_in_order(bench):
+    calls = []
+    stream = bench.one_at_a_time(lambda start, stop: calls.append((start, stop)), 3)
+    assert calls == []  # built, not run
+    stream()
+    assert calls == [(0, 1), (1, 2), (2, 3)]
+
+
 def test_prints_one_row_per_variant_and_the_classical_estimator(bench, capsys):
     args = ["--presets", "tiny", "--size", "64", "--batch", "2", "--rounds", "1", "--radii", "64,32"]
     bench.main([*args, "--unet-dtype", "bfloat16"])
