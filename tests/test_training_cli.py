@@ -68,6 +68,19 @@ def trained(tmp_path_factory) -> Path:
     return root / "run"
 
 
+def test_more_cpu_processes_than_cores_are_warned_about(caplog):
+    from dpcn.cli import _check_trainer, _usable_cores
+
+    cores = _usable_cores()
+    ddp = ["trainer=ddp", "trainer.accelerator=cpu"]
+    with caplog.at_level("WARNING", logger="dpcn"):
+        _check_trainer(compose_config(*ddp, f"trainer.devices={cores}"))
+        assert not caplog.records
+        _check_trainer(compose_config(*ddp, f"trainer.devices={cores + 1}"))
+    (record,) = caplog.records
+    assert record.getMessage().startswith(f"trainer.devices={cores + 1} CPU processes on {cores} usable cores")
+
+
 def test_fit_writes_a_run_directory(trained):
     assert (trained / "checkpoints" / "last.ckpt").is_file()
     assert (trained / ".hydra" / "config.yaml").is_file()

@@ -213,6 +213,14 @@ _TRAINER_INTS = {"max_epochs": -1, "min_epochs": 0, "max_steps": -1, "num_nodes"
                  "check_val_every_n_epoch": 1, "accumulate_grad_batches": 1}  # fmt: skip
 
 
+def _usable_cores() -> int:
+    """CPU cores this process may run on (its affinity where the OS tells it)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1
+
+
 def _check_trainer(cfg: DictConfig) -> None:
     import torch
 
@@ -229,6 +237,16 @@ def _check_trainer(cfg: DictConfig) -> None:
     for key, low in _TRAINER_INTS.items():
         if cfg.trainer.get(key) is not None:
             check_int(f"trainer.{key}", cfg.trainer[key], low=low)
+    devices, cores = cfg.trainer.get("devices"), _usable_cores()
+    if accelerator == "cpu" and isinstance(devices, int) and devices > cores:
+        # Lightning runs it, but the processes share the cores: slower than `devices=<cores>`.
+        log.warning(
+            "trainer.devices=%d CPU processes on %d usable cores: they share the cores, which is slower "
+            "than trainer.devices=%d",
+            devices,
+            cores,
+            cores,
+        )
     if cfg.trainer.get("gradient_clip_val") is not None:
         check_number("trainer.gradient_clip_val", cfg.trainer.gradient_clip_val, low=0.0)
     precision = cfg.trainer.get("precision")
