@@ -78,7 +78,12 @@ def test_loss_weights_and_errors():
     with pytest.raises(ValueError, match=r"loss\.l1_rotation must be a finite number >= 0, got 'abc'"):
         DPCNLoss(l1_rotation="abc")
     with pytest.raises(ValueError, match=r"loss\.kl_rotation_scale must be a finite number >= 0"):
+        DPCNLoss(kl_rotation_scale=float("inf"))
+    # a shared weight is named as set, not as the per-term weight it fills in
+    with pytest.raises(ValueError, match=r"loss\.kl_weight must be a finite number >= 0, got 'x'"):
         DPCNLoss(kl_weight="x")
+    with pytest.raises(ValueError, match=r"loss\.l1_weight must be a finite number >= 0, got nan"):
+        DPCNLoss(l1_weight=float("nan"))
     with pytest.raises(ValueError, match=r"loss\.l1_scale must be a finite number >= 0, got -1"):
         DPCNLoss(l1_scale=-1)
     surface = torch.randn(2, 8, 8, dtype=torch.float64)

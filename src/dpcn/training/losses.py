@@ -148,6 +148,8 @@ class DPCNLoss(nn.Module):
             kl_rotation_scale=kl_rotation_scale,
             kl_translation=kl_translation,
         )
+        for key, value in (("l1_weight", l1_weight), ("kl_weight", kl_weight)):  # named as the user set them
+            check_number(f"loss.{key}", value, low=0.0)
         self.weights = {
             key: (l1_weight if key.startswith("l1") else kl_weight) if value is None else value
             for key, value in overrides.items()
