@@ -68,9 +68,15 @@ def stage1_peak_ratio(model: DPCN, template: torch.Tensor, source: torch.Tensor)
     """``(B,)`` the score of stage 1's second rotation/scale peak over its first's, with the
     model's inference settings (windows, views, radii); 0 where there is no second peak. What
     ``DPCN.hypothesis_ratio`` gates on: near 1, stage 1 cannot tell two poses apart."""
+    device = next(model.parameters()).device
     with torch.no_grad():
         rs, _ = model.rotation_scale(
-            template, source, 2, model.spectrum_window_grid, model.rotation_views, radii=model.inference_radii
+            template.to(device),
+            source.to(device),
+            2,
+            model.spectrum_window_grid,
+            model.rotation_views,
+            radii=model.inference_radii,
         )
     first, second = rs.candidate_score[:, 0], rs.candidate_score[:, 1]
     return torch.where(torch.isfinite(second), second / first, torch.zeros_like(first)).cpu()
