@@ -25,9 +25,11 @@ from pathlib import Path
 
 import torch
 from hydra import compose, initialize_config_dir
+from hydra.errors import HydraException
 from hydra.utils import instantiate
+from omegaconf.errors import OmegaConfBaseException
 
-from dpcn.cli import inference_settings
+from dpcn.cli import inference_settings, one_line
 from dpcn.data.aeroground import PAIRS
 from dpcn.metrics import pose_errors, summarize, thresholds_for
 from dpcn.pose import Pose
@@ -60,16 +62,17 @@ def parse_stages(parser: argparse.ArgumentParser, text: str) -> list[str]:
 def evaluation_setup(data: str, checkpoint: str | None, overrides: list[str], prog: str):
     """``(config, matcher, name)`` for evaluating a checkpoint (its inference settings replaced
     by the top-level overrides) or, without one, the classical estimator, on a data config.
-    A missing or unreadable checkpoint exits with one line prefixed by ``prog``."""
-    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
-        cfg = compose("config", overrides=[f"data={data}", *overrides])
-        if not checkpoint:
-            classical = compose("config", overrides=[f"data={data}", "model=classical", *overrides])
-            return cfg, instantiate(classical.model, _convert_="all"), "classical"
+    A bad data config or override and a missing or unreadable checkpoint exit with one line
+    prefixed by ``prog``."""
     try:
+        with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+            cfg = compose("config", overrides=[f"data={data}", *overrides])
+            if not checkpoint:
+                classical = compose("config", overrides=[f"data={data}", "model=classical", *overrides])
+                return cfg, instantiate(classical.model, _convert_="all"), "classical"
         matcher = load_matcher(checkpoint, **inference_settings(cfg))
-    except CheckpointError as e:
-        raise SystemExit(f"{prog}: {e}") from None
+    except (HydraException, OmegaConfBaseException, CheckpointError) as e:
+        raise SystemExit(f"{prog}: {one_line(e)}") from None
     return cfg, matcher, f"DPCN ({Path(checkpoint).name})"
 
 
@@ -86,7 +89,10 @@ def matched_batches(matcher, datamodule, stage: str) -> tuple[str, Iterator[tupl
     def batches() -> Iterator[tuple[dict, Pose, torch.Tensor]]:
         for batch in loader:
             with torch.no_grad():  # per call: a generator must not leave autograd off between yields
-                pose = matcher.match(batch["template"], batch["source"])
+                try:
+                    pose = matcher.match(batch["template"], batch["source"])
+                except ValueError as e:  # pairs the matcher refuses, e.g. a checkpoint built for another size
+                    raise SystemExit(f"{label}: {one_line(e)}") from None
             yield batch, pose, pose_errors(pose.as_tensor().cpu(), batch["pose"])
 
     return label, batches()

@@ -4,7 +4,7 @@ import pytest
 
 from dpcn.data.scene import make_dataset
 
-from .conftest import load_benchmark
+from .conftest import load_benchmark, write_checkpoint
 
 
 @pytest.fixture(scope="module")
@@ -33,3 +33,19 @@ def test_bad_arguments_are_refused(coverage):
         coverage.main(["--bins", "1.5"])
     with pytest.raises(SystemExit, match="checkpoint not found: /nonexistent.ckpt"):
         coverage.main(["--checkpoint", "/nonexistent.ckpt"])
+
+
+def test_shared_setup_refuses_bad_configs_in_one_line(coverage):
+    # evaluation_setup: the set-up of every evaluation benchmark (coverage, confidence, misses, ceiling)
+    with pytest.raises(SystemExit, match=r"^bench_x: In 'config': Could not find 'data/nosuch'"):
+        coverage.evaluation_setup("nosuch", None, [], "bench_x")
+    with pytest.raises(SystemExit, match=r"^bench_x: Could not override 'nosuch\.key'"):
+        coverage.evaluation_setup("s2d", None, ["nosuch.key=1"], "bench_x")
+
+
+def test_pairs_the_checkpoint_was_not_built_for_end_in_one_line(coverage, tmp_path):
+    root = make_dataset(tmp_path / "maps", n_scenes=3, seed=3, size=(720, 720), gap=0)
+    checkpoint = write_checkpoint(tmp_path / "a.ckpt", "data=s2d", "image_size=96")
+    overrides = [f"data.root={root}", "image_size=128", "data.dataset.translation=20", "data.test_length=4"]
+    with pytest.raises(SystemExit, match=r"^held-out scene: this model was built for 96x96 images, got 128x128"):
+        coverage.main(["--data", "s2d", "--checkpoint", str(checkpoint), "--stages", "test", "--", *overrides])

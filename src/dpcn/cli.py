@@ -548,7 +548,8 @@ RUNNERS = {
 }
 
 
-def _one_line(error: BaseException) -> str:
+def one_line(error: BaseException) -> str:
+    """An error as the one line the command line prints (also the benchmarks' scripts)."""
     from hydra.errors import InstantiationException
 
     if isinstance(error, InstantiationException) and error.__cause__ is not None:
@@ -571,7 +572,7 @@ def _task(cfg: DictConfig) -> None:
     except (CliError, DpcnInputError, FileNotFoundError, ValueError, TypeError, InstantiationException) as error:
         if os.environ.get("DPCN_DEBUG"):
             raise
-        print(f"dpcn {command}: error: {_one_line(error)}", file=sys.stderr)
+        print(f"dpcn {command}: error: {one_line(error)}", file=sys.stderr)
         sys.exit(2)
 
 
@@ -664,7 +665,7 @@ def main(argv: list[str] | None = None) -> None:
     except Exception as error:  # Hydra's parse/composition errors have several types
         if os.environ.get("DPCN_DEBUG"):
             raise
-        print(f"dpcn {command}: error: {_one_line(error)}", file=sys.stderr)
+        print(f"dpcn {command}: error: {one_line(error)}", file=sys.stderr)
         sys.exit(2)
     sys.argv = [sys.argv[0], *flags, f"hydra.job.name={command}", *overrides]
     try:
@@ -672,5 +673,5 @@ def main(argv: list[str] | None = None) -> None:
     except ValueError as error:  # Hydra's check of its own flags ("only one of --run, --multirun ...")
         if os.environ.get("DPCN_DEBUG"):
             raise
-        print(f"dpcn {command}: error: {_one_line(error)}", file=sys.stderr)
+        print(f"dpcn {command}: error: {one_line(error)}", file=sys.stderr)
         sys.exit(2)
