@@ -67,7 +67,8 @@ def most_confident(
 def stage1_peak_ratio(model: DPCN, template: torch.Tensor, source: torch.Tensor) -> torch.Tensor:
     """``(B,)`` the score of stage 1's second rotation/scale peak over its first's, with the
     model's inference settings (windows, views, radii); 0 where there is no second peak. What
-    ``DPCN.hypothesis_ratio`` gates on: near 1, stage 1 cannot tell two poses apart."""
+    ``DPCN.hypothesis_ratio`` gates on: near 1, stage 1 cannot tell two poses apart. A stage-1
+    pass of its own, beside ``match``'s: a model that checks one peak keeps no second one."""
     device = next(model.parameters()).device
     with torch.no_grad():
         rs, _ = model.rotation_scale(
