@@ -8,6 +8,7 @@ and columns, pixels), so the weights of the two phases are comparable.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
@@ -125,6 +126,10 @@ class DPCNLoss(nn.Module):
             :func:`half_turn_nll`, the extra over ``kl_translation``). Phase 1 knows the
             angle modulo half a turn and inference settles it by phase 2's stronger peak,
             which the paper's losses, on the upright surface only, never train.
+        hard_pair_gamma: weight the phase-1 terms (rotation/scale L1 and KL, alignment) of
+            each pair by its phase-1 one-peak KL to the power ``hard_pair_gamma``, detached
+            and normalised to a mean of 1 over the batch, as focal losses weight hard
+            examples (0: off, every pair alike, the paper's loss).
     """
 
     def __init__(
@@ -139,6 +144,7 @@ class DPCNLoss(nn.Module):
         kl_translation: float | None = None,
         kl_align: float = 0.0,
         kl_half_turn: float = 0.0,
+        hard_pair_gamma: float = 0.0,
     ) -> None:
         super().__init__()
         overrides = dict(
@@ -159,6 +165,8 @@ class DPCNLoss(nn.Module):
         for key, value in self.weights.items():
             check_number(f"loss.{key}", value, low=0.0)
         check_number("loss.sigma", sigma, low=0.0, low_open=True)
+        check_number("loss.hard_pair_gamma", hard_pair_gamma, low=0.0)
+        self.hard_pair_gamma = float(hard_pair_gamma)
         weights = tuple(self.weights.values())
         if not any(w > 0 for w in weights):
             raise ValueError(f"loss weights must be >= 0 and not all zero, got {weights}")
@@ -182,20 +190,23 @@ class DPCNLoss(nn.Module):
         ``kl_half_turn > 0``."""
         t_rs, t_tr = temperatures[0], temperatures[1]
         terms: dict[str, Tensor] = {}
+        phase1_mean = self._phase1_mean(rs_surface, rs_centre, t_rs)
         if self.weights["l1_rotation"] or self.weights["l1_scale"]:
             rot, sc = expectation_l1(rs_surface, rs_centre, t_rs, (True, False))
-            terms["l1_rotation"], terms["l1_scale"] = rot.mean(), sc.mean()
+            terms["l1_rotation"], terms["l1_scale"] = phase1_mean(rot), phase1_mean(sc)
         if self.weights["l1_translation"]:
             dy, dx = expectation_l1(t_surface, t_centre, t_tr, (True, True))
             terms["l1_translation"] = (dy + dx).mean()
         if self.weights["kl_rotation_scale"]:
-            terms["kl_rotation_scale"] = one_peak_kl(rs_surface, rs_centre, t_rs, self.sigma, (True, False)).mean()
+            terms["kl_rotation_scale"] = phase1_mean(
+                one_peak_kl(rs_surface, rs_centre, t_rs, self.sigma, (True, False))
+            )
         if self.weights["kl_translation"]:
             terms["kl_translation"] = one_peak_kl(t_surface, t_centre, t_tr, self.sigma, (True, True)).mean()
         if self.weights["kl_align"]:
             if align_surface is None or align_centre is None:
                 raise ValueError("loss.kl_align > 0 needs the phase-1 alignment surface and its true peak")
-            terms["kl_align"] = one_peak_kl(align_surface, align_centre, t_tr, self.sigma, (True, True)).mean()
+            terms["kl_align"] = phase1_mean(one_peak_kl(align_surface, align_centre, t_tr, self.sigma, (True, True)))
         if self.weights["kl_half_turn"]:
             if turned_surface is None:
                 raise ValueError("loss.kl_half_turn > 0 needs phase 2's surface for the half-turned source")
@@ -204,3 +215,20 @@ class DPCNLoss(nn.Module):
         if not isinstance(total, Tensor) or not math.isfinite(float(total.detach())):
             raise FloatingPointError(f"non-finite training loss: { {k: float(v) for k, v in terms.items()} }")
         return LossTerms(total, terms)
+
+    def _phase1_mean(
+        self, rs_surface: Tensor, rs_centre: Tensor, temperature: Tensor | float
+    ) -> Callable[[Tensor], Tensor]:
+        """The batch mean of ``(B,)`` phase-1 per-pair terms, each pair weighted by its
+        hardness with ``hard_pair_gamma`` (a plain mean when it is 0)."""
+        if not self.hard_pair_gamma:
+            return torch.mean
+        with torch.no_grad():
+            hardness = one_peak_kl(rs_surface, rs_centre, temperature, self.sigma, (True, False))
+            weight = hardness.clamp_min(1e-6) ** self.hard_pair_gamma
+            weight = weight / weight.mean()
+
+        def weighted_mean(values: Tensor) -> Tensor:
+            return (values * weight.to(values.dtype)).mean()
+
+        return weighted_mean
