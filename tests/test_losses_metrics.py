@@ -206,7 +206,7 @@ def test_half_turn_term_is_off_by_default_and_needs_its_surface():
 
 def test_hard_pair_weighting_weights_phase_1_by_its_one_peak_kl():
     """Independent reference: per-pair phase-1 terms weighted by ``kl ** gamma / mean(kl ** gamma)``
-    (``kl`` floored at 1e-6);
+    (``kl`` floored at 0.01);
     phase 2 keeps the plain mean; the weights carry no gradient; gamma 0 is the plain loss."""
     torch.manual_seed(1)
     rs = torch.randn(3, 8, 10, dtype=torch.float64)
@@ -219,8 +219,8 @@ def test_hard_pair_weighting_weights_phase_1_by_its_one_peak_kl():
     rot, sc = expectation_l1(rs, centre, 0.5, (True, False))
     plain = DPCNLoss(kl_align=1.0)(rs, centre, t_surface, centre, temperatures, t_surface, centre)
     assert DPCNLoss().hard_pair_gamma == 0.0
-    for gamma in (1.0, 2.0):
-        weight = kl.clamp_min(1e-6) ** gamma / (kl.clamp_min(1e-6) ** gamma).mean()
+    for gamma in (1.0, 2.0, -0.5):
+        weight = kl.clamp_min(0.01) ** gamma / (kl.clamp_min(0.01) ** gamma).mean()
         out = DPCNLoss(kl_align=1.0, hard_pair_gamma=gamma)(
             rs, centre, t_surface, centre, temperatures, t_surface, centre
         )
@@ -231,17 +231,20 @@ def test_hard_pair_weighting_weights_phase_1_by_its_one_peak_kl():
         torch.testing.assert_close(out.terms["kl_align"], (weight * align).mean())
         torch.testing.assert_close(out.terms["kl_translation"], plain.terms["kl_translation"])
         torch.testing.assert_close(out.terms["l1_translation"], plain.terms["l1_translation"])
-        # the easy pair (smallest KL) counts for less than in the plain mean, the others for more
-        assert weight.argmin() == 0 and out.terms["kl_rotation_scale"] > plain.terms["kl_rotation_scale"]
+        # gamma > 0: the easy pair (smallest KL) counts for less than in the plain mean; < 0: for more
+        easiest = weight.argmin() if gamma > 0 else weight.argmax()
+        assert easiest == 0
+        heavier = out.terms["kl_rotation_scale"] > plain.terms["kl_rotation_scale"]
+        assert heavier == (gamma > 0)
     # the weights are constants of the backward pass: the gradient is the weighted one
     surface = rs.clone().requires_grad_()
     DPCNLoss(l1_weight=0.0, kl_translation=0.0, hard_pair_gamma=1.0)(
         surface, centre, t_surface, centre, temperatures
     ).total.backward()
     reference = rs.clone().requires_grad_()
-    weight = kl.clamp_min(1e-6) / kl.clamp_min(1e-6).mean()
+    weight = kl.clamp_min(0.01) / kl.clamp_min(0.01).mean()
     (weight * one_peak_kl(reference, centre, 0.5, 1.5, (True, False))).mean().backward()
     torch.testing.assert_close(surface.grad, reference.grad)
-    for bad in (-1.0, float("nan"), "x"):
-        with pytest.raises(ValueError, match=r"loss\.hard_pair_gamma must be a finite number >= 0"):
+    for bad in (-3.0, 5.0, float("nan"), "x"):
+        with pytest.raises(ValueError, match=r"loss\.hard_pair_gamma must be a finite number in \[-2, 4\]"):
             DPCNLoss(hard_pair_gamma=bad)

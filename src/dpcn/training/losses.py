@@ -129,7 +129,8 @@ class DPCNLoss(nn.Module):
         hard_pair_gamma: weight the phase-1 terms (rotation/scale L1 and KL, alignment) of
             each pair by its phase-1 one-peak KL to the power ``hard_pair_gamma``, detached
             and normalised to a mean of 1 over the batch, as focal losses weight hard
-            examples (0: off, every pair alike, the paper's loss).
+            examples (0: off, every pair alike, the paper's loss; negative values, down to
+            -2, weight them down instead, as robust losses do; the KL is floored at 0.01).
     """
 
     def __init__(
@@ -165,7 +166,7 @@ class DPCNLoss(nn.Module):
         for key, value in self.weights.items():
             check_number(f"loss.{key}", value, low=0.0)
         check_number("loss.sigma", sigma, low=0.0, low_open=True)
-        check_number("loss.hard_pair_gamma", hard_pair_gamma, low=0.0)
+        check_number("loss.hard_pair_gamma", hard_pair_gamma, low=-2.0, high=4.0)
         self.hard_pair_gamma = float(hard_pair_gamma)
         weights = tuple(self.weights.values())
         if not any(w > 0 for w in weights):
@@ -225,7 +226,7 @@ class DPCNLoss(nn.Module):
             return torch.mean
         with torch.no_grad():
             hardness = one_peak_kl(rs_surface, rs_centre, temperature, self.sigma, (True, False))
-            weight = hardness.clamp_min(1e-6) ** self.hard_pair_gamma
+            weight = hardness.clamp_min(0.01) ** self.hard_pair_gamma
             weight = weight / weight.mean()
 
         def weighted_mean(values: Tensor) -> Tensor:
