@@ -141,6 +141,9 @@ def test_loss_configs_take_per_term_overrides(choice, expected):
     assert loss.weights == pytest.approx(
         {**expected, "kl_align": 1.0 if choice == "default" else 0.0, "kl_half_turn": 0.0}
     )
+    assert loss.hard_pair_gamma == 0.0
+    tuned = compose_config(f"loss={choice}", "loss.hard_pair_gamma=-0.5")
+    assert DPCNLoss(**instantiate(tuned.loss)).hard_pair_gamma == -0.5
 
 
 def test_alignment_term_is_off_by_default_and_needs_its_surface():
