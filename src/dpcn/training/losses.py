@@ -191,7 +191,10 @@ class DPCNLoss(nn.Module):
         ``kl_half_turn > 0``."""
         t_rs, t_tr = temperatures[0], temperatures[1]
         terms: dict[str, Tensor] = {}
-        phase1_mean = self._phase1_mean(rs_surface, rs_centre, t_rs)
+        rs_kl = None  # per pair; the phase-1 KL term and the hard-pair weights share it
+        if self.weights["kl_rotation_scale"] or self.hard_pair_gamma:
+            rs_kl = one_peak_kl(rs_surface, rs_centre, t_rs, self.sigma, (True, False))
+        phase1_mean = self._phase1_mean(rs_kl)
         if self.weights["l1_rotation"] or self.weights["l1_scale"]:
             rot, sc = expectation_l1(rs_surface, rs_centre, t_rs, (True, False))
             terms["l1_rotation"], terms["l1_scale"] = phase1_mean(rot), phase1_mean(sc)
@@ -199,9 +202,7 @@ class DPCNLoss(nn.Module):
             dy, dx = expectation_l1(t_surface, t_centre, t_tr, (True, True))
             terms["l1_translation"] = (dy + dx).mean()
         if self.weights["kl_rotation_scale"]:
-            terms["kl_rotation_scale"] = phase1_mean(
-                one_peak_kl(rs_surface, rs_centre, t_rs, self.sigma, (True, False))
-            )
+            terms["kl_rotation_scale"] = phase1_mean(rs_kl)
         if self.weights["kl_translation"]:
             terms["kl_translation"] = one_peak_kl(t_surface, t_centre, t_tr, self.sigma, (True, True)).mean()
         if self.weights["kl_align"]:
@@ -217,17 +218,14 @@ class DPCNLoss(nn.Module):
             raise FloatingPointError(f"non-finite training loss: { {k: float(v) for k, v in terms.items()} }")
         return LossTerms(total, terms)
 
-    def _phase1_mean(
-        self, rs_surface: Tensor, rs_centre: Tensor, temperature: Tensor | float
-    ) -> Callable[[Tensor], Tensor]:
+    def _phase1_mean(self, rs_kl: Tensor | None) -> Callable[[Tensor], Tensor]:
         """The batch mean of ``(B,)`` phase-1 per-pair terms, each pair weighted by its
-        hardness with ``hard_pair_gamma`` (a plain mean when it is 0)."""
+        phase-1 one-peak KL ``rs_kl`` with ``hard_pair_gamma`` (a plain mean when it is 0)."""
         if not self.hard_pair_gamma:
             return torch.mean
-        with torch.no_grad():
-            hardness = one_peak_kl(rs_surface, rs_centre, temperature, self.sigma, (True, False))
-            weight = hardness.clamp_min(0.01) ** self.hard_pair_gamma
-            weight = weight / weight.mean()
+        assert rs_kl is not None  # computed whenever hard_pair_gamma is set
+        weight = rs_kl.detach().clamp_min(0.01) ** self.hard_pair_gamma
+        weight = weight / weight.mean()
 
         def weighted_mean(values: Tensor) -> Tensor:
             return (values * weight.to(values.dtype)).mean()
