@@ -420,7 +420,7 @@ def _interrupted(run_dir: Path, signal_name: str) -> RunInterrupted:
     last = run_dir / "checkpoints" / "last.ckpt"
     code = _exit_code(signal_name)
     try:
-        step = torch.load(last, map_location="cpu", weights_only=False)["global_step"]
+        step = torch.load(last, map_location="cpu", weights_only=True)["global_step"]
     except Exception:  # none written yet (stopped before the first step), or unreadable
         return RunInterrupted(f"stopped by {signal_name}; no checkpoint to resume from in {last.parent}", code)
     return RunInterrupted(

@@ -3,6 +3,10 @@
 from __future__ import annotations
 
 import math
+import pickle
+import re
+import zipfile
+import zlib
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -366,16 +370,66 @@ class ClassicalModule(_EvaluationMixin, L.LightningModule):
         return None
 
 
+def _damaged_member(path: Path) -> str | None:
+    """What fails the CRC check of a torch zip archive, or ``None``. torch reads the members
+    without checking them, so damage inside a tensor's bytes would load as wrong weights."""
+    if not zipfile.is_zipfile(path):  # not a zip (or one without its end): torch.load tells
+        return None
+    try:
+        with zipfile.ZipFile(path) as archive:
+            bad = archive.testzip()
+    except (zipfile.BadZipFile, OSError, EOFError, zlib.error) as error:
+        return f"a torch archive that cannot be read through ({_first_sentence(error)})"
+    if bad is None:
+        return None
+    return f"archive member {bad!r} fails its CRC check (the file changed after it was written)"
+
+
+def _unreadable_reason(path: Path, error: Exception) -> str:
+    """What is wrong with a file ``torch.load`` failed on, in words: torch's own message names
+    its unpickler or zip reader (e.g. "Ran out of input", "[Errno 22] Invalid argument")."""
+    size = path.stat().st_size
+    if size == 0:
+        return "the file is empty (0 bytes)"
+    with path.open("rb") as f:
+        head = f.read(8)
+    if head.startswith(b"PK"):  # torch's zip format, the only one it has written since 1.6
+        if not zipfile.is_zipfile(path):
+            ending = "without its end (an interrupted write or copy?)"
+            return f"the file ends too early: a torch archive of {size} bytes {ending}"
+        return f"a torch archive whose contents are damaged ({_first_sentence(error)})"
+    if head.startswith(b"\x80"):  # a pickle: torch's legacy format
+        return f"a damaged legacy torch file ({_first_sentence(error)})"
+    return f"not a torch file: it begins with {head!r}"
+
+
+def _first_sentence(error: Exception) -> str:
+    text = " ".join(str(error).split()) or type(error).__name__
+    return text.split(". ")[0].rstrip(".")[:160]
+
+
 def _read_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") -> dict[str, Any]:
     """The contents of a DPCN Lightning checkpoint; :class:`CheckpointError` naming the problem
     for a missing, corrupt or foreign file."""
     path = Path(path)
     if not path.is_file():
         raise CheckpointError(f"checkpoint not found: {path}")
-    try:
-        checkpoint = torch.load(path, map_location=map_location, weights_only=False)
+    unreadable = f"cannot read checkpoint {path} (corrupt or not a torch file)"
+    damaged = _damaged_member(path)
+    if damaged is not None:
+        raise CheckpointError(f"{unreadable}: {damaged}")
+    try:  # tensors and plain values only: a checkpoint from elsewhere cannot run code here
+        checkpoint = torch.load(path, map_location=map_location, weights_only=True)
+    except pickle.UnpicklingError as error:
+        code = re.search(r"GLOBAL ([\w.]+)", str(error))
+        if code is None:
+            raise CheckpointError(f"{unreadable}: {_unreadable_reason(path, error)}") from None
+        raise CheckpointError(
+            f"{path} holds Python objects that loading it would run ({code.group(1)}); dpcn reads only "
+            "tensors and plain values from checkpoints (is the file from a source you trust?)"
+        ) from None
     except Exception as error:  # torch raises many types for a damaged file
-        raise CheckpointError(f"cannot read checkpoint {path} (corrupt or not a torch file): {error}") from None
+        raise CheckpointError(f"{unreadable}: {_unreadable_reason(path, error)}") from None
     if not isinstance(checkpoint, dict) or "state_dict" not in checkpoint or "hyper_parameters" not in checkpoint:
         raise CheckpointError(f"{path} is not a Lightning checkpoint of a dpcn model")
     if not any(key.startswith("model.") for key in checkpoint["state_dict"]):

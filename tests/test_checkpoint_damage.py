@@ -1,0 +1,112 @@
+"""Damaged or foreign checkpoint files: one clear line saying what is wrong, never weights
+loaded from damaged bytes, never code run from a file."""
+
+from __future__ import annotations
+
+import io
+import os
+import zipfile
+from pathlib import Path
+
+import pytest
+import torch
+
+from dpcn.training.module import CheckpointError, load_matcher
+
+from .conftest import write_checkpoint
+
+PREFIX = "(corrupt or not a torch file): "
+
+
+def _largest_member(path: Path) -> zipfile.ZipInfo:
+    """The archive's biggest tensor storage: a weight, so damage to it changes the model."""
+    with zipfile.ZipFile(path) as archive:
+        storages = [info for info in archive.infolist() if "/data/" in info.filename]
+    return max(storages, key=lambda info: info.file_size)
+
+
+def _damage_member(path: Path, info: zipfile.ZipInfo) -> None:
+    """Overwrite bytes in the middle of a stored member's data, leaving the zip structure intact."""
+    data = bytearray(path.read_bytes())
+    name_length = int.from_bytes(data[info.header_offset + 26 : info.header_offset + 28], "little")
+    extra_length = int.from_bytes(data[info.header_offset + 28 : info.header_offset + 30], "little")
+    start = info.header_offset + 30 + name_length + extra_length + info.file_size // 2
+    data[start : start + 64] = bytes(255 - b for b in data[start : start + 64])
+    path.write_bytes(bytes(data))
+
+
+@pytest.fixture(scope="module")
+def good(tmp_path_factory) -> bytes:
+    return write_checkpoint(tmp_path_factory.mktemp("ckpt") / "good.ckpt").read_bytes()
+
+
+def test_damage_inside_a_weight_is_refused_not_loaded(good, tmp_path):
+    path = tmp_path / "damaged.ckpt"
+    path.write_bytes(good)
+    member = _largest_member(path)
+    _damage_member(path, member)
+    # torch itself loads the file and hands back different weights: the check is what stops it
+    intact = torch.load(io.BytesIO(good), weights_only=False)["state_dict"]
+    loaded = torch.load(path, weights_only=False)["state_dict"]
+    assert any(not torch.equal(intact[k], loaded[k]) for k in intact)
+    with pytest.raises(CheckpointError) as error:
+        load_matcher(path)
+    message = str(error.value)
+    assert f"{PREFIX}archive member {member.filename!r} fails its CRC check" in message
+    assert "\n" not in message
+
+
+@pytest.mark.parametrize(
+    ("content", "reason"),
+    [
+        (lambda good: b"", "the file is empty (0 bytes)"),
+        (lambda good: b"hello world", "not a torch file: it begins with b'hello wo'"),
+        (lambda good: good[: len(good) // 2], "the file ends too early: a torch archive of"),
+    ],
+)
+def test_unreadable_files_say_why(good, tmp_path, content, reason):
+    path = tmp_path / "bad.ckpt"
+    path.write_bytes(content(good))
+    with pytest.raises(CheckpointError) as error:
+        load_matcher(path)
+    message = str(error.value)
+    assert message.startswith(f"cannot read checkpoint {path} {PREFIX}{reason}")
+    assert "\n" not in message and "miniz" not in message and "Errno" not in message
+
+
+def test_a_truncated_legacy_file_names_the_format(tmp_path):
+    buffer = io.BytesIO()
+    torch.save({"state_dict": {}}, buffer, _use_new_zipfile_serialization=False)
+    path = tmp_path / "legacy.ckpt"
+    path.write_bytes(buffer.getvalue()[:20])
+    with pytest.raises(CheckpointError, match=r"a damaged legacy torch file \("):
+        load_matcher(path)
+
+
+def test_an_intact_checkpoint_still_loads(good, tmp_path):
+    path = tmp_path / "good.ckpt"
+    path.write_bytes(good)
+    assert load_matcher(path).model is not None
+
+
+class _MakesAFolder:
+    """Pickles as a call of ``os.mkdir``: code that an unpickler would run on loading."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+
+    def __reduce__(self):
+        return (os.mkdir, (str(self.path),))
+
+
+def test_a_checkpoint_that_would_run_code_is_refused_without_running_it(good, tmp_path):
+    marker = tmp_path / "ran"
+    checkpoint = torch.load(io.BytesIO(good), weights_only=True)
+    checkpoint["hyper_parameters"]["payload"] = _MakesAFolder(marker)
+    path = tmp_path / "foreign.ckpt"
+    torch.save(checkpoint, path)
+    with pytest.raises(CheckpointError) as error:
+        load_matcher(path)
+    assert not marker.exists()
+    assert str(error.value).startswith(f"{path} holds Python objects that loading it would run (")
+    assert "mkdir" in str(error.value) and "\n" not in str(error.value)
