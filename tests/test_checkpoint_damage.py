@@ -110,3 +110,31 @@ def test_a_checkpoint_that_would_run_code_is_refused_without_running_it(good, tm
     assert not marker.exists()
     assert str(error.value).startswith(f"{path} holds Python objects that loading it would run (")
     assert "mkdir" in str(error.value) and "\n" not in str(error.value)
+
+
+def test_a_module_made_in_python_from_omegaconf_and_numpy_values_loads_back(tmp_path):
+    """Lightning stores the arguments as given; they are made plain first, so the checkpoint
+    passes the tensors-and-plain-values reading above."""
+    import lightning as L
+    import numpy as np
+    from omegaconf import OmegaConf
+
+    from dpcn.training.module import DPCNModule
+
+    net = {"base_channels": 2, "depth": 1, "image_size": [32, 32], "n_angles": 32, "n_radii": 32}
+    module = DPCNModule(
+        net=OmegaConf.create(net), temperature=np.float64(0.05), lr=np.float32(0.5), warmup_epochs=np.int64(2)
+    )
+    checkpoint = {
+        "state_dict": module.state_dict(),
+        "hyper_parameters": dict(module.hparams),
+        "pytorch-lightning_version": L.__version__,
+    }
+    path = tmp_path / "python.ckpt"
+    torch.save(checkpoint, path)
+    loaded = load_matcher(path)
+    assert loaded.hparams["net"] == net and type(loaded.hparams["net"]) is dict
+    assert (loaded.hparams["temperature"], loaded.hparams["lr"], loaded.hparams["warmup_epochs"]) == (0.05, 0.5, 2)
+    assert [type(loaded.hparams[k]) for k in ("temperature", "lr", "warmup_epochs")] == [float, float, int]
+    for name, tensor in module.state_dict().items():
+        assert torch.equal(loaded.state_dict()[name], tensor), name

@@ -12,7 +12,9 @@ from pathlib import Path
 from typing import Any
 
 import lightning as L
+import numpy as np
 import torch
+from omegaconf import OmegaConf
 from torch import Tensor
 
 from .._validate import check_bool, check_int, check_number
@@ -43,6 +45,20 @@ def _warmup_cosine(step: int, total: int, warmup: float = 0.1, floor: float = 0.
 
 class CheckpointError(ValueError):
     """A checkpoint that is missing, unreadable or not a dpcn checkpoint."""
+
+
+def _plain_values(value: Any) -> Any:
+    """``value`` as plain Python: OmegaConf containers and numpy values become the dicts, lists
+    and numbers they hold (recursively); anything else is returned as it is."""
+    if OmegaConf.is_config(value):
+        value = OmegaConf.to_container(value, resolve=True)
+    if isinstance(value, dict):
+        return {key: _plain_values(item) for key, item in value.items()}
+    if isinstance(value, (list, tuple)):
+        return type(value)(_plain_values(item) for item in value)
+    if isinstance(value, (np.generic, np.ndarray)):
+        return value.tolist()
+    return value
 
 
 def _check_freeze(freeze: object) -> tuple[str, ...]:
@@ -187,6 +203,13 @@ class DPCNModule(_EvaluationMixin, L.LightningModule):
         for t in [temperature] if isinstance(temperature, (int, float, str)) else list(temperature):
             check_number("model.temperature", t, low=0.0, low_open=True)
         frozen = _check_freeze(freeze)
+        # Lightning saves the arguments' current values: plain ones (not a Python caller's
+        # OmegaConf containers or numpy numbers) load back with torch.load(weights_only=True)
+        plain = _plain_values
+        net, temperature, loss, freeze = plain(net), plain(temperature), plain(loss), plain(freeze)
+        lr, weight_decay, teacher_forcing = plain(lr), plain(weight_decay), plain(teacher_forcing)
+        translation_fraction, translation_threshold = plain(translation_fraction), plain(translation_threshold)
+        warmup_epochs, max_epochs = plain(warmup_epochs), plain(max_epochs)
         self.save_hyperparameters()
         net = dict(net or {})
         net.setdefault("train_temperature", temperature if isinstance(temperature, (int, float)) else list(temperature))
