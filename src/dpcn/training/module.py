@@ -433,7 +433,9 @@ def _first_sentence(error: Exception) -> str:
 
 def _read_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") -> dict[str, Any]:
     """The contents of a DPCN Lightning checkpoint; :class:`CheckpointError` naming the problem
-    for a missing, corrupt or foreign file."""
+    for a missing, corrupt or foreign file. The archive's CRCs are checked first (a damaged
+    tensor would otherwise load as wrong weights), and only tensors and plain values are read:
+    no code in the file runs."""
     path = Path(path)
     if not path.is_file():
         raise CheckpointError(f"checkpoint not found: {path}")
