@@ -204,6 +204,52 @@ def _stopped_midway(tmp_path: Path, args: list[str], signum: int, ready, settle:
     return proc.returncode, log.read_text()
 
 
+def _child_exits() -> None:
+    """Start a child process that exits at once and reap it: one SIGCHLD to this process."""
+    subprocess.run([sys.executable, "-c", "pass"], check=True)
+
+
+class _WorkerKilled(RuntimeError):
+    pass
+
+
+def _raise_like_the_loader(signum, frame):  # what PyTorch's DataLoader SIGCHLD handler does
+    raise _WorkerKilled("DataLoader worker (pid 1) is killed by signal: Terminated.")
+
+
+@pytest.mark.skipif(not hasattr(signal, "SIGCHLD"), reason="SIGCHLD is POSIX")
+@pytest.mark.parametrize("stop", [signal.SIGTERM, signal.SIGINT], ids=["term", "int"])
+def test_a_stop_turns_the_loaders_sigchld_handler_off_first(stop):
+    """During fit, a SIGTERM or Ctrl-C turns off the SIGCHLD handler that would raise for each
+    dead data worker, so a stop to the whole process group cannot abort Lightning's handling
+    of it (and the interrupted run's checkpoint) midway."""
+    from dpcn.cli import _stop_quiets_worker_deaths
+
+    before = {s: signal.getsignal(s) for s in (signal.SIGTERM, signal.SIGINT, signal.SIGCHLD)}
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)  # as in a fresh process: SIGTERM would end it
+    try:
+        with _stop_quiets_worker_deaths():
+            signal.signal(signal.SIGCHLD, _raise_like_the_loader)  # the loader installs it inside fit
+            with pytest.raises(_WorkerKilled):  # before a stop, a dead child raises
+                _child_exits()
+                time.sleep(0.1)
+            if stop == signal.SIGINT:
+                with pytest.raises(KeyboardInterrupt):  # Ctrl-C still interrupts
+                    os.kill(os.getpid(), stop)
+                    time.sleep(0.1)
+            else:
+                os.kill(os.getpid(), stop)  # survived: SIGTERM is left to Lightning's handler
+                time.sleep(0.1)
+            assert signal.getsignal(signal.SIGCHLD) == signal.SIG_DFL
+            _child_exits()  # no longer raises
+            time.sleep(0.1)
+        assert signal.getsignal(signal.SIGTERM) == signal.SIG_DFL  # the handlers of before
+        assert signal.getsignal(signal.SIGINT) == before[signal.SIGINT]
+    finally:
+        for signum, handler in before.items():
+            signal.signal(signum, handler)
+
+
 @pytest.mark.skipif(not hasattr(os, "killpg"), reason="process groups are POSIX")
 @STOP_SIGNALS
 def test_a_run_stopped_with_its_data_workers_keeps_its_place(tmp_path, signum, name, status):
