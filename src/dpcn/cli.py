@@ -374,9 +374,15 @@ def _is_worker_shutdown_noise(unraisable: sys.UnraisableHookArgs) -> bool:
     data workers with the run. PyTorch's SIGCHLD handler reports a dead worker by raising
     wherever the main thread is; when that is the loader's own ``__del__`` (shutting the
     workers down), Python can only print the traceback. The run has then already reported the
-    stop (or, for a worker that crashed on its own, raised the same error where it could)."""
+    stop (or, for a worker that crashed on its own, raised the same error where it could).
+    Also CPython's report of a SIGCHLD that came just as the handler was turned off for a stop
+    (:func:`_stop_quiets_worker_deaths`) or a checkpoint write: it is dropped, as intended."""
     where = getattr(getattr(unraisable, "object", None), "__qualname__", "")
     error = getattr(unraisable, "exc_value", None)
+    if isinstance(error, OSError) and hasattr(signal, "SIGCHLD"):
+        # A worker's SIGCHLD that arrived just as its handler was turned off (after a stop,
+        # and while a checkpoint is written): CPython reports it instead of running a handler.
+        return str(error) == f"Signal {int(signal.SIGCHLD)} ignored due to race condition"
     return (
         where.endswith("DataLoaderIter.__del__")
         and isinstance(error, RuntimeError)
