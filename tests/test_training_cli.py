@@ -223,12 +223,12 @@ def test_a_stop_turns_the_loaders_sigchld_handler_off_first(stop):
     """During fit, a SIGTERM or Ctrl-C turns off the SIGCHLD handler that would raise for each
     dead data worker, so a stop to the whole process group cannot abort Lightning's handling
     of it (and the interrupted run's checkpoint) midway."""
-    from dpcn.cli import _stop_quiets_worker_deaths
+    from dpcn.training.checkpointing import stop_quiets_worker_deaths
 
     before = {s: signal.getsignal(s) for s in (signal.SIGTERM, signal.SIGINT, signal.SIGCHLD)}
     signal.signal(signal.SIGTERM, signal.SIG_DFL)  # as in a fresh process: SIGTERM would end it
     try:
-        with _stop_quiets_worker_deaths():
+        with stop_quiets_worker_deaths():
             signal.signal(signal.SIGCHLD, _raise_like_the_loader)  # the loader installs it inside fit
             with pytest.raises(_WorkerKilled):  # before a stop, a dead child raises
                 _child_exits()

@@ -9,15 +9,13 @@ by :mod:`dpcn.training`, :mod:`dpcn.data` and :mod:`dpcn.registration`.
 
 from __future__ import annotations
 
-import contextlib
 import io
 import logging
 import os
 import signal
 import sys
-import threading
 import warnings
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -376,7 +374,7 @@ def _is_worker_shutdown_noise(unraisable: sys.UnraisableHookArgs) -> bool:
     workers down), Python can only print the traceback. The run has then already reported the
     stop (or, for a worker that crashed on its own, raised the same error where it could).
     Also CPython's report of a SIGCHLD that came just as the handler was turned off for a stop
-    (:func:`_stop_quiets_worker_deaths`) or a checkpoint write: it is dropped, as intended."""
+    or a checkpoint write (:mod:`dpcn.training.checkpointing`): it is dropped, as intended."""
     where = getattr(getattr(unraisable, "object", None), "__qualname__", "")
     error = getattr(unraisable, "exc_value", None)
     if isinstance(error, OSError) and hasattr(signal, "SIGCHLD"):
@@ -388,41 +386,6 @@ def _is_worker_shutdown_noise(unraisable: sys.UnraisableHookArgs) -> bool:
         and isinstance(error, RuntimeError)
         and str(error).startswith("DataLoader worker")
     )
-
-
-@contextlib.contextmanager
-def _stop_quiets_worker_deaths() -> Iterator[None]:
-    """For the duration: a SIGTERM or Ctrl-C reaching this process first turns PyTorch's SIGCHLD
-    handler off, then goes on as before (Lightning's SIGTERM handling, KeyboardInterrupt).
-
-    A signal to the whole process group kills the data workers with the run, and each death
-    makes that handler raise "DataLoader worker ... is killed" wherever the main thread is,
-    also inside Lightning's handling of the stop, before it has written the interrupted run's
-    last.ckpt (a SIGTERM once left no checkpoint in CI that way). Python runs pending signal
-    handlers in signal-number order, so SIGINT (2) and SIGTERM (15) come before the workers'
-    SIGCHLD (17). The stop still ends the run: Lightning raises at the next step for SIGTERM,
-    and the loader notices dead workers by itself. Main thread, POSIX; a no-op elsewhere.
-    """
-    if not hasattr(signal, "SIGCHLD") or threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    stops = (signal.SIGTERM, signal.SIGINT)
-    previous = {signum: signal.getsignal(signum) for signum in stops}
-
-    def on_stop(signum: int, frame: object) -> None:
-        signal.signal(signal.SIGCHLD, signal.SIG_DFL)
-        handler = previous[signum]
-        if callable(handler):  # e.g. KeyboardInterrupt for Ctrl-C; SIGTERM is Lightning's to handle
-            handler(signum, frame)
-
-    for signum in stops:
-        signal.signal(signum, on_stop)
-    try:
-        yield
-    finally:  # SIGCHLD stays as it is: the loader's handler, or off after a stop that ends the run
-        for signum, handler in previous.items():
-            if handler is not None:  # None: set from outside Python, cannot be restored from here
-                signal.signal(signum, handler)
 
 
 def quiet_worker_shutdown() -> None:
@@ -478,6 +441,7 @@ def run_fit(cfg: DictConfig) -> None:
     import lightning as L
     from hydra.utils import instantiate
 
+    from .training.checkpointing import stop_quiets_worker_deaths
     from .training.module import DPCNModule, load_weights
 
     ckpt = _check_ckpt(cfg.ckpt_path)
@@ -498,7 +462,7 @@ def run_fit(cfg: DictConfig) -> None:
     trainer = _trainer(cfg, run_dir, fit=True)
     quiet_worker_shutdown()
     try:
-        with _stop_quiets_worker_deaths():
+        with stop_quiets_worker_deaths():
             trainer.fit(module, datamodule=datamodule, ckpt_path=str(ckpt) if ckpt else None)
     except BaseException as error:
         # Lightning has already written last.ckpt (save_on_exception; nothing before the first step).

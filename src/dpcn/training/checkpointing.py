@@ -1,4 +1,5 @@
-"""Checkpoint writing that never leaves a half-written file behind."""
+"""Checkpoint writing that never leaves a half-written file behind, and that data workers dying
+with a stopped run cannot abort."""
 
 from __future__ import annotations
 
@@ -12,7 +13,12 @@ from typing import Any
 
 from lightning.pytorch.plugins.io import TorchCheckpointIO
 
-__all__ = ["AtomicCheckpointIO"]
+__all__ = ["AtomicCheckpointIO", "stop_quiets_worker_deaths"]
+
+
+def _sigchld_settable() -> bool:
+    """Whether this thread may change SIGCHLD's handler (POSIX, main thread)."""
+    return hasattr(signal, "SIGCHLD") and threading.current_thread() is threading.main_thread()
 
 
 @contextlib.contextmanager
@@ -25,11 +31,7 @@ def _sigchld_ignored() -> Iterator[None]:
     very checkpoint that saves the interrupted run. A worker lost during an ordinary save is
     still noticed afterwards, by the loader's own liveness checks.
     """
-    if (
-        not hasattr(signal, "SIGCHLD")
-        or threading.current_thread() is not threading.main_thread()
-        or not callable(signal.getsignal(signal.SIGCHLD))  # no Python handler: nothing can raise
-    ):
+    if not _sigchld_settable() or not callable(signal.getsignal(signal.SIGCHLD)):  # no Python handler: nothing raises
         yield
         return
     previous = signal.signal(signal.SIGCHLD, signal.SIG_DFL)
@@ -37,6 +39,41 @@ def _sigchld_ignored() -> Iterator[None]:
         yield
     finally:
         signal.signal(signal.SIGCHLD, previous)
+
+
+@contextlib.contextmanager
+def stop_quiets_worker_deaths() -> Iterator[None]:
+    """For the duration: a SIGTERM or Ctrl-C reaching this process first turns PyTorch's SIGCHLD
+    handler off, then goes on as before (Lightning's SIGTERM handling, KeyboardInterrupt).
+
+    A signal to the whole process group kills the data workers with the run, and each death
+    makes that handler raise "DataLoader worker ... is killed" wherever the main thread is,
+    also inside Lightning's handling of the stop, before it has written the interrupted run's
+    last.ckpt (a SIGTERM once left no checkpoint in CI that way). Python runs pending signal
+    handlers in signal-number order, so SIGINT (2) and SIGTERM (15) come before the workers'
+    SIGCHLD (17). The stop still ends the run: Lightning raises at the next step for SIGTERM,
+    and the loader notices dead workers by itself. Main thread, POSIX; a no-op elsewhere.
+    """
+    if not _sigchld_settable():
+        yield
+        return
+    stops = (signal.SIGTERM, signal.SIGINT)
+    previous = {signum: signal.getsignal(signum) for signum in stops}
+
+    def on_stop(signum: int, frame: object) -> None:
+        signal.signal(signal.SIGCHLD, signal.SIG_DFL)
+        handler = previous[signum]
+        if callable(handler):  # e.g. KeyboardInterrupt for Ctrl-C; SIGTERM is Lightning's to handle
+            handler(signum, frame)
+
+    for signum in stops:
+        signal.signal(signum, on_stop)
+    try:
+        yield
+    finally:  # SIGCHLD stays as it is: the loader's handler, or off after a stop that ends the run
+        for signum, handler in previous.items():
+            if handler is not None:  # None: set from outside Python, cannot be restored from here
+                signal.signal(signum, handler)
 
 
 class AtomicCheckpointIO(TorchCheckpointIO):

@@ -506,7 +506,7 @@ def load_matcher(
     return module.to(map_location).eval()
 
 
-def _plain(settings: Any) -> dict[str, Any]:
+def _tuples_as_lists(settings: Any) -> dict[str, Any]:
     """A configuration mapping with tuples as lists (checkpoints store either)."""
     return {k: list(v) if isinstance(v, (list, tuple)) else v for k, v in dict(settings).items()}
 
@@ -536,8 +536,8 @@ def load_weights(module: DPCNModule, ckpt_path: str | Path) -> DPCNModule:
     if problems:
         shown = "; ".join(problems[:2]) + (f"; and {len(problems) - 2} more" if len(problems) > 2 else "")
         # The settings behind the difference, from the two runs' configurations.
-        there = _plain(checkpoint["hyper_parameters"].get("net") or {})
-        here = _plain(module.hparams.get("net") or {})
+        there = _tuples_as_lists(checkpoint["hyper_parameters"].get("net") or {})
+        here = _tuples_as_lists(module.hparams.get("net") or {})
         keys = [k for k in sorted(set(there) | set(here)) if there.get(k) != here.get(k)]
         settings = [f"model.net.{k} {there.get(k)} there, {here.get(k)} here" for k in keys]
         hint = f". Settings that differ: {'; '.join(settings)}" if settings else ""
