@@ -138,3 +138,68 @@ def test_a_module_made_in_python_from_omegaconf_and_numpy_values_loads_back(tmp_
     assert [type(loaded.hparams[k]) for k in ("temperature", "lr", "warmup_epochs")] == [float, float, int]
     for name, tensor in module.state_dict().items():
         assert torch.equal(loaded.state_dict()[name], tensor), name
+
+
+# Lightning's own loader, the one the README's notebook snippet shows, gets the same checks.
+
+
+def test_lightnings_loader_refuses_damage_inside_a_weight(good, tmp_path):
+    from dpcn.training.module import DPCNModule
+
+    path = tmp_path / "damaged.ckpt"
+    path.write_bytes(good)
+    member = _largest_member(path)
+    _damage_member(path, member)
+    with pytest.raises(CheckpointError, match="fails its CRC check") as error:
+        DPCNModule.load_from_checkpoint(path)
+    assert member.filename in str(error.value)
+
+
+def test_lightnings_loader_refuses_code_without_running_it(good, tmp_path):
+    from dpcn.training.module import DPCNModule
+
+    marker = tmp_path / "ran"
+    checkpoint = torch.load(io.BytesIO(good), weights_only=True)
+    checkpoint["hyper_parameters"]["payload"] = _MakesAFolder(marker)
+    path = tmp_path / "foreign.ckpt"
+    torch.save(checkpoint, path)
+    with pytest.raises(CheckpointError, match="holds Python objects that loading it would run"):
+        DPCNModule.load_from_checkpoint(str(path))
+    assert not marker.exists()
+
+
+@pytest.mark.parametrize(("content", "reason"), [(b"", "the file is empty"), (None, "checkpoint not found")])
+def test_lightnings_loader_names_a_missing_or_empty_file(tmp_path, content, reason):
+    from dpcn.training.module import DPCNModule
+
+    path = tmp_path / "model.ckpt"
+    if content is not None:
+        path.write_bytes(content)
+    with pytest.raises(CheckpointError, match=reason):
+        DPCNModule.load_from_checkpoint(path)
+
+
+def test_lightnings_loader_still_loads_with_its_own_arguments(good, tmp_path):
+    from dpcn.training.module import DPCNModule
+
+    path = tmp_path / "good.ckpt"
+    path.write_bytes(good)
+    intact = torch.load(io.BytesIO(good), weights_only=True)
+    module = DPCNModule.load_from_checkpoint(path, map_location="cpu", lr=0.123)
+    assert module.hparams["lr"] == 0.123  # Lightning's keyword overrides still apply
+    for name, tensor in intact["state_dict"].items():
+        assert torch.equal(module.state_dict()[name], tensor), name
+    # a stream is handed to Lightning as it is
+    assert isinstance(DPCNModule.load_from_checkpoint(io.BytesIO(good)), DPCNModule)
+
+
+def test_lightnings_loader_says_when_a_checkpoint_does_not_fit_this_version(good, tmp_path):
+    from dpcn.training.module import DPCNModule
+
+    checkpoint = torch.load(io.BytesIO(good), weights_only=True)
+    net = checkpoint["hyper_parameters"]["net"]
+    net["base_channels"] = 2 * net["base_channels"]  # settings that build other weights than the file's
+    path = tmp_path / "other.ckpt"
+    torch.save(checkpoint, path)
+    with pytest.raises(CheckpointError, match=r"does not fit this version of dpcn: .*size mismatch"):
+        DPCNModule.load_from_checkpoint(path)

@@ -231,6 +231,37 @@ class DPCNModule(_EvaluationMixin, L.LightningModule):
             module.eval()
         return self
 
+    @classmethod
+    def load_from_checkpoint(  # type: ignore[override]
+        cls,
+        checkpoint_path: str | Path | Any,
+        map_location: Any = None,
+        hparams_file: str | Path | None = None,
+        strict: bool | None = None,
+        weights_only: bool | None = None,
+        **kwargs: Any,
+    ) -> DPCNModule:
+        """Lightning's loader (the notebook path), after :func:`load_matcher`'s checks of a
+        local file: :class:`CheckpointError` naming the problem for a missing, damaged (CRC) or
+        foreign file, or one whose pickle would run code; the file is then read with
+        ``weights_only=True`` unless the caller says otherwise. Streams and remote URLs go to
+        Lightning unchecked."""
+        local = isinstance(checkpoint_path, (str, Path)) and "://" not in str(checkpoint_path)
+        if local:
+            _read_checkpoint(checkpoint_path)
+            weights_only = True if weights_only is None else weights_only
+        try:
+            return super().load_from_checkpoint(
+                checkpoint_path, map_location, hparams_file, strict, weights_only, **kwargs
+            )
+        except (TypeError, RuntimeError) as error:
+            if not local:
+                raise
+            # unknown or missing arguments, or weights of another shape: an older or newer release
+            raise CheckpointError(
+                f"checkpoint {checkpoint_path} does not fit this version of dpcn: {_first_sentence(error)}"
+            ) from None
+
     # ---------------------------------------------------------------- inference
     def match(self, template: Tensor, source: Tensor) -> Pose:
         """Pose of ``source`` relative to ``template`` (tensors ``(B, C, H, W)`` or arrays)."""
