@@ -7,7 +7,7 @@ from torch.autograd import gradcheck
 
 from dpcn.estimator import unwarp_rotation_scale
 from dpcn.models import DPCN, UNet, half_turn
-from dpcn.models.dpcn import local_relief
+from dpcn.models.dpcn import local_relief, local_texture
 
 from .conftest import angle_error, cv2_warp, photo
 
@@ -313,6 +313,76 @@ def test_template_relief_doubles_only_the_template_inputs(downsample, pooling):
     assert small_dpcn().template_unet_input(image) is image  # off by default
     with pytest.raises(ValueError, match="model.net.template_relief"):
         small_dpcn(template_relief=0.0)
+
+
+def _texture_reference(image: np.ndarray, sigma: float, window: float, gain: float) -> np.ndarray:
+    """local_texture by OpenCV: Gaussian blurs of 2 * ceil(3 sigma) + 1 taps, reflected borders."""
+    import cv2
+
+    def blur(x, s):
+        k = 2 * max(1, int(np.ceil(3 * s))) + 1
+        return cv2.GaussianBlur(x, (k, k), s, borderType=cv2.BORDER_REFLECT_101)
+
+    detail = image - blur(image, sigma)
+    return gain * np.sqrt(blur(detail * detail, window) + 1e-6)
+
+
+def test_local_texture_matches_opencv_on_a_photograph():
+    image = photo("camera", (64, 80)).astype(np.float64)
+    ours = local_texture(torch.from_numpy(image)[None, None], sigma=1.5, window=2.5, gain=7.0)[0, 0].numpy()
+    np.testing.assert_allclose(ours, _texture_reference(image, 1.5, 2.5, 7.0), rtol=1e-6, atol=1e-9)
+
+
+def test_local_texture_tells_apart_regions_that_only_their_grain_separates():
+    # Two halves of one grey level, fine grain of amplitude 0.02 and 0.08: the 2 x 2 box average
+    # (phase 1's input) all but erases the grain, the texture energy keeps the boundary.
+    torch.manual_seed(0)
+    grain = torch.randn(1, 1, 64, 64)
+    amplitude = torch.full((1, 1, 64, 64), 0.02)
+    amplitude[..., 32:] = 0.08
+    image = 0.5 + amplitude * grain
+    model = small_dpcn(image_size=(64, 64), rotation_scale_downsample=2, texture_energy="template")
+    shrunk = model.rotation_scale_input(image)
+    energy = model.rotation_scale_input(local_texture(image))
+    left, right = (slice(4, 12), slice(20, 28))  # columns of each half at half size, away from the edge
+    assert abs(shrunk[..., left].mean() - shrunk[..., right].mean()) < 0.01  # the image: no boundary
+    assert energy[..., right].mean() > 3 * energy[..., left].mean()  # the energy: a clear one
+    assert local_texture(image).shape == image.shape and (local_texture(image) > 0).all()
+    flat = local_texture(torch.full((1, 2, 16, 16), 0.7))
+    torch.testing.assert_close(flat, torch.full_like(flat, 10.0 * 1e-3))  # nothing varies: the floor
+
+
+def test_gradcheck_local_texture():
+    image = torch.rand(1, 2, 12, 13, dtype=torch.float64, requires_grad=True)
+    assert gradcheck(lambda x: local_texture(x, sigma=1.0, window=1.5), (image,))
+
+
+@pytest.mark.parametrize("side", ["template", "both"])
+@pytest.mark.parametrize("relief", [None, 100.0])
+def test_texture_energy_adds_a_phase1_input_channel_per_image_channel(side, relief):
+    model = small_dpcn(texture_energy=side, template_relief=relief, in_channels=3, rotation_scale_downsample=2)
+    template_images = 2 if relief else 1
+    assert model.rs_template.stem[0].in_channels == 3 * (template_images + 1)
+    assert model.rs_source.stem[0].in_channels == 3 * (2 if side == "both" else 1)
+    assert model.t_template.stem[0].in_channels == 3 * template_images and model.t_source.stem[0].in_channels == 3
+    image = torch.rand(2, 3, 32, 32)
+    with_texture = model.with_texture(image, image, "template")
+    torch.testing.assert_close(with_texture, torch.cat([image, local_texture(image)], dim=1))
+    assert (model.with_texture(image, image, "source") is image) == (side == "template")
+    out = model.eval()(image, image.flip(-1))
+    assert out.features["rs_template"].shape[0] == 2 and torch.isfinite(out.pose.angle).all()
+    model.rotation_views = 4  # views go through the texture input too
+    assert torch.isfinite(model(image, image.flip(-1)).pose.angle).all()
+
+
+def test_texture_energy_is_off_by_default_and_checked():
+    model = small_dpcn()
+    image = torch.rand(1, 1, 32, 32)
+    assert model.with_texture(image, image, "template") is image
+    assert model.rs_template.stem[0].in_channels == 1
+    message = "model.net.texture_energy must be null or one of template, both, got 'source'"
+    with pytest.raises(ValueError, match=message):
+        small_dpcn(texture_energy="source")
 
 
 def test_phase1_at_half_resolution_recovers_an_opencv_pose():
@@ -654,3 +724,15 @@ def test_a_known_rotation_range_settles_the_half_turn_with_one_phase2_pass():
         model.rotation_range = [0.0, 400.0]
     with pytest.raises(ValueError, match=r"rotation_range must be \[low, high\] in degrees"):
         small_dpcn(rotation_range=[5.0])
+
+
+@pytest.mark.parametrize(("setting", "channels"), [("template", (2, 1)), ("both", (2, 2)), ("null", (1, 1))])
+def test_texture_energy_from_the_real_config(setting, channels):
+    from hydra.utils import instantiate
+
+    from .conftest import compose_config
+
+    module = instantiate(compose_config(f"model.net.texture_energy={setting}").model, _convert_="all")
+    net = module.model
+    assert (net.rs_template.stem[0].in_channels, net.rs_source.stem[0].in_channels) == channels
+    assert net.t_template.stem[0].in_channels == net.t_source.stem[0].in_channels == 1

@@ -53,7 +53,17 @@ from ..ops.logpolar import log_polar_grid, log_radius_step
 from ..pose import Pose, wrap_angle
 from .unet import UNet
 
-__all__ = ["DPCN", "DPCNOutput", "PHASE_UNETS", "ROTATION_SCALE_POOLING", "UNET_DTYPES", "half_turn", "local_relief"]
+__all__ = [
+    "DPCN",
+    "DPCNOutput",
+    "PHASE_UNETS",
+    "ROTATION_SCALE_POOLING",
+    "TEXTURE_ENERGY",
+    "UNET_DTYPES",
+    "half_turn",
+    "local_relief",
+    "local_texture",
+]
 
 ROTATION_SCALE_POOLING = ("average", "space_to_depth")
 UNET_DTYPES = ("float32", "bfloat16")  # inference settings of DPCN.unet_dtype
@@ -87,6 +97,34 @@ def local_relief(image: Tensor, gain: float, sigma: float = 4.0) -> Tensor:
     radius = max(1, int(math.ceil(3.0 * sigma)))
     blurred = kornia.filters.gaussian_blur2d(image, (2 * radius + 1,) * 2, (sigma, sigma), border_type="reflect")
     return torch.asinh(gain * (image - blurred)) / math.asinh(gain)
+
+
+def local_texture(image: Tensor, sigma: float = 2.0, window: float = 3.0, gain: float = 10.0) -> Tensor:
+    """Local texture energy: ``gain * sqrt(G_w * (x - G_s * x)^2 + 1e-6)``, per channel.
+
+    The detail finer than a Gaussian of ``sigma`` pixels, its square averaged under a Gaussian
+    of ``window`` pixels: how strongly the image varies around each pixel. Two regions of one
+    grey level but different grain differ here, and a box average to half size (phase 1's
+    input) keeps the difference where it erases the grain itself. Differentiable.
+
+    Args:
+        image: ``(B, C, H, W)``.
+        sigma, window: the two blurs' standard deviations in pixels (reflected borders).
+        gain: a scale; grain of standard deviation 0.01-0.1 in ``[0, 1]`` images gives about 0.1-1.
+
+    Returns:
+        ``(B, C, H, W)``, same dtype and device, non-negative.
+    """
+
+    def blur(x: Tensor, s: float) -> Tensor:
+        radius = max(1, int(math.ceil(3.0 * s)))
+        return kornia.filters.gaussian_blur2d(x, (2 * radius + 1,) * 2, (s, s), border_type="reflect")
+
+    detail = image - blur(image, sigma)
+    return gain * torch.sqrt(blur(detail * detail, window) + 1e-6)
+
+
+TEXTURE_ENERGY = ("template", "both")
 
 
 @dataclass
@@ -164,6 +202,11 @@ class DPCN(nn.Module):
             at full size) side by side, twice the input channels: for templates whose shared
             structure is small steps next to large ones, such as kerbs beside buildings on an
             elevation map. The source side is unchanged.
+        texture_energy: ``None`` (off), ``"template"`` or ``"both"``: those phase-1 U-Nets
+            also take the image's :func:`local_texture`, computed at full size before the
+            shrink to phase 1's resolution (which averages fine grain away): for regions told
+            apart by their grain rather than their grey level. Phase 2 sees full-size images
+            and is unchanged.
         rotation_scale_correlation: how phase 1 correlates the log-polar maps: ``joint``
             (the paper's 2-D phase correlation) or ``decoupled`` (DPCN++'s 1-D phase
             correlations of their angle and log-radius profiles, rotation and scale each
@@ -212,6 +255,7 @@ class DPCN(nn.Module):
         rotation_views: int = 1,
         inference_radii: int | None = None,
         template_relief: float | None = None,
+        texture_energy: str | None = None,
         rotation_scale_correlation: str = "joint",
         rotation_range: tuple[float, float] | list[float] | None = None,
     ) -> None:
@@ -235,6 +279,10 @@ class DPCN(nn.Module):
             check_number(f"model.net.{name}", value, low=0.0, high=1.0, low_open=True)
         if template_relief is not None:
             template_relief = check_number("model.net.template_relief", template_relief, low=0.0, low_open=True)
+        if texture_energy is not None and texture_energy not in TEXTURE_ENERGY:
+            raise ValueError(
+                f"model.net.texture_energy must be null or one of {', '.join(TEXTURE_ENERGY)}, got {texture_energy!r}"
+            )
         for name, value in (("sigma", sigma), ("rotation_sigma", rotation_sigma)):
             check_number(f"model.net.{name}", value, low=0.0)
         for name, value in (("temperature", temperature), ("rotation_temperature", rotation_temperature)):
@@ -260,13 +308,17 @@ class DPCN(nn.Module):
         rs_channels = in_channels * (rotation_scale_downsample**2 if rotation_scale_pooling == "space_to_depth" else 1)
         rs_template_width = rs_width if rotation_scale_template_channels is None else rotation_scale_template_channels
         relief = 1 if template_relief is None else 2  # the template's input channels, in images
-        self.rs_template = unet(rs_channels * relief, rs_template_width, rs_levels)
-        self.rs_source = unet(rs_channels, rs_width, rs_levels)
+        textured = {"template": texture_energy is not None, "source": texture_energy == "both"}
+        rs_template_in = rs_channels * (relief + textured["template"])
+        self.rs_template = unet(rs_template_in, rs_template_width, rs_levels)
+        self.rs_source = unet(rs_channels * (1 + textured["source"]), rs_width, rs_levels)
         self.t_template = unet(in_channels * relief, base_channels, depth)
         self.t_source = unet(in_channels, base_channels, depth)
         self.rotation_scale_downsample = rotation_scale_downsample
         self.rotation_scale_pooling = rotation_scale_pooling
         self.template_relief = template_relief
+        self.texture_energy = texture_energy
+        self._textured = textured
         self.in_channels = in_channels
         self.image_size = None if image_size is None else (int(image_size[0]), int(image_size[1]))
         self.n_angles, self.n_radii = n_angles, n_radii
@@ -416,6 +468,13 @@ class DPCN(nn.Module):
             return template
         return torch.cat([template, local_relief(template, self.template_relief)], dim=1)
 
+    def with_texture(self, image: Tensor, unet_input: Tensor, side: str) -> Tensor:
+        """``unet_input`` with the :func:`local_texture` of ``image`` beside it where
+        ``texture_energy`` covers ``side`` (``"template"`` or ``"source"``), else as it is."""
+        if not self._textured[side]:
+            return unet_input
+        return torch.cat([unet_input, local_texture(image)], dim=1)
+
     def rotation_scale_unet_input(self, image: Tensor) -> Tensor:
         """What the phase-1 U-Nets take: ``(B, C, H, W)`` shrunk by ``rotation_scale_pooling``
         to ``(B, C', ceil(H / d), ceil(W / d))``, ``C' = C`` (average) or ``C * d * d``
@@ -463,10 +522,11 @@ class DPCN(nn.Module):
         The features are ``(B, C, H / d, W / d)`` with ``d = rotation_scale_downsample`` (of
         the first view, the pair as given), unshifted.
         """
-        rs_template = self.rs_template(
-            self.rotation_scale_unet_input(self.template_unet_input(dihedral_views(template, views)))
-        )
-        rs_source = self.rs_source(self.rotation_scale_unet_input(dihedral_views(source, views)))
+        template_views, source_views = dihedral_views(template, views), dihedral_views(source, views)
+        template_in = self.with_texture(template_views, self.template_unet_input(template_views), "template")
+        rs_template = self.rs_template(self.rotation_scale_unet_input(template_in))
+        source_in = self.with_texture(source_views, source_views, "source")
+        rs_source = self.rs_source(self.rotation_scale_unet_input(source_in))
         windowed = rs_source
         if source_shifts is not None:
             if views != 1 or window_grid != 1 or source_shifts.shape != (rs_source.shape[0], 2):
