@@ -17,6 +17,10 @@ them:
     levels) exceeds D; source: every boundary (style B emphasises all of them). Separate
     extractors cannot see which boundaries the other image shows, so this is what they can
     at best agree on when boundaries fainter than D are lost in the template's texture.
+``visible>D|grain>G``
+    as ``visible>D``, and the template also shows the boundaries between classes whose
+    grain (style A's per-class texture amplitude) differs by more than G: regions of nearly
+    one grey level that an extractor could still tell apart by how grainy they are.
 
 With ``--checkpoint`` it also asks which of a trained model's two stage-1 extractors loses
 the pairs: stage 1 (rotation modulo 180 degrees) on the learned features of both images, and
@@ -31,7 +35,7 @@ above ``--sides-contrast``).
 It swaps the private render functions of :mod:`dpcn.data.simulation` while it runs (the
 scene, pose and crop geometry stay the module's own).
 
-    python benchmarks/bench_sim_ceiling.py [--pairs 300] [--contrast 0.02 0.05 0.1] \
+    python benchmarks/bench_sim_ceiling.py [--pairs 300] [--contrast 0.02 0.05 0.1] [--grain 0.02] \
         [--checkpoint CKPT [--window-grid 3] [--peaks 5]]
 """
 
@@ -73,8 +77,9 @@ def _gradient(image: np.ndarray) -> np.ndarray:
 
 
 @contextlib.contextmanager
-def rendering(mode: str, contrast: float = 0.0):
-    """Temporarily render the two styles as the feature maps of ``mode``."""
+def rendering(mode: str, contrast: float = 0.0, grain: float | None = None):
+    """Temporarily render the two styles as the feature maps of ``mode`` (``grain``: the
+    ``visible`` template also shows boundaries of a texture-amplitude step above it)."""
     render_a, render_b = sim._render_a, sim._render_b
 
     def template(style, labels, rect):
@@ -82,7 +87,10 @@ def rendering(mode: str, contrast: float = 0.0):
             return _gradient(render_a(style, labels, rect))
         if mode == "all-boundaries":
             return _boundaries(labels.astype(np.float32), 0.5)
-        return _boundaries(cv2.LUT(labels, sim._lut(style.colour)), contrast)  # visible
+        visible = _boundaries(cv2.LUT(labels, sim._lut(style.colour)), contrast)
+        if grain is None:
+            return visible
+        return np.maximum(visible, _boundaries(cv2.LUT(labels, sim._lut(style.texture_amp)), grain))
 
     def source(style, labels, rect, canvas):
         if mode == "gradient":
@@ -97,7 +105,7 @@ def rendering(mode: str, contrast: float = 0.0):
         sim._render_a, sim._render_b = render_a, render_b
 
 
-def batches(mode: str, pairs: int, contrast: float = 0.0, batch: int = 10):
+def batches(mode: str, pairs: int, contrast: float = 0.0, batch: int = 10, grain: float | None = None):
     """``(template, source, pose)`` batches of the test pairs rendered as ``mode``.
 
     Each batch is rendered inside its own :func:`rendering` block, so several of these
@@ -105,15 +113,16 @@ def batches(mode: str, pairs: int, contrast: float = 0.0, batch: int = 10):
     """
     data = sim.SimulatedPairs(kind="heterogeneous", length=pairs, seed=2, noise=0.0 if mode != "pixels" else 0.02)
     for start in range(0, pairs, batch):
-        with rendering(mode, contrast):
+        with rendering(mode, contrast, grain):
             items = [data[i] for i in range(start, min(pairs, start + batch))]
         yield tuple(torch.stack([x[key] for x in items]) for key in ("template", "source", "pose"))
 
 
-def evaluate(mode: str, pairs: int, contrast: float = 0.0) -> dict[str, float]:
+def evaluate(mode: str, pairs: int, contrast: float = 0.0, grain: float | None = None) -> dict[str, float]:
     """Accuracies (%) of the classical estimator on the pairs rendered as ``mode``."""
     estimator = PhaseCorrelationEstimator()
-    errors = [pose_errors(estimator(t, s).as_tensor(), gt) for t, s, gt in batches(mode, pairs, contrast)]
+    streams = batches(mode, pairs, contrast, grain=grain)
+    errors = [pose_errors(estimator(t, s).as_tensor(), gt) for t, s, gt in streams]
     metrics = summarize(torch.cat(errors), thresholds_for(5.0))
     return {column: metrics[key] for column, key in COLUMNS.items()}
 
@@ -209,6 +218,13 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--pairs", type=int, default=300)
     parser.add_argument("--contrast", type=float, nargs="*", default=[0.02, 0.05, 0.1])
+    parser.add_argument(
+        "--grain",
+        type=float,
+        nargs="*",
+        default=[0.02],
+        help="also rows whose template shows the boundaries of a grain (texture amplitude) step above G",
+    )
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--checkpoint", help="a trained DPCN checkpoint: which stage-1 extractor loses the pairs")
     parser.add_argument(
@@ -222,7 +238,7 @@ def main() -> None:
     args = parser.parse_args()
     if args.pairs < 1 or args.threads < 1 or args.peaks < 1:
         parser.error("--pairs, --threads and --peaks must be >= 1")
-    if min([*args.contrast, args.sides_contrast]) < 0:
+    if min([*args.contrast, *args.grain, args.sides_contrast]) < 0:
         parser.error("contrasts must be >= 0")
     torch.set_num_threads(args.threads)
     model = None
@@ -232,15 +248,16 @@ def main() -> None:
         except (CheckpointError, ValueError) as error:
             parser.error(str(error))
 
-    runs = [("pixels", 0.0), ("gradient", 0.0), ("all-boundaries", 0.0)]
-    runs += [(f"visible>{c:g}", c) for c in args.contrast]
+    runs = [("pixels", 0.0, None), ("gradient", 0.0, None), ("all-boundaries", 0.0, None)]
+    runs += [(f"visible>{c:g}", c, None) for c in args.contrast]
+    runs += [(f"visible>{c:g}|grain>{g:g}", c, g) for c in args.contrast for g in args.grain]
     print(f"sim_heterogeneous test pairs (seed 2), first {args.pairs}; classical estimator; Acc in %")
-    print(("{:<18}" + "{:>8}" * len(COLUMNS)).format("features", *COLUMNS))
-    for name, contrast in runs:
+    print(("{:<26}" + "{:>8}" * len(COLUMNS)).format("features", *COLUMNS))
+    for name, contrast, grain in runs:
         started = time.perf_counter()
         mode = "visible" if name.startswith("visible") else name
-        acc = evaluate(mode, args.pairs, contrast)
-        row = ("{:<18}" + "{:>8.1f}" * len(COLUMNS)).format(name, *acc.values())
+        acc = evaluate(mode, args.pairs, contrast, grain)
+        row = ("{:<26}" + "{:>8.1f}" * len(COLUMNS)).format(name, *acc.values())
         print(f"{row}   ({time.perf_counter() - started:.0f} s)", flush=True)
     if model is not None:
         print(f"\nstage 1 of {args.checkpoint}, rotation (mod 180 degrees) within 1 degree, %")

@@ -77,3 +77,17 @@ def test_stage1_misses_splits_the_pairs_by_visible_template_boundaries(ceiling):
     assert medians and all(v == pytest.approx(1.0) for v in medians)
     medians = [v for k, v in none.items() if k.startswith("median share") and v == v]
     assert medians and all(v == 0.0 for v in medians)
+
+
+def test_the_grain_rows_add_boundaries_to_the_visible_template(ceiling):
+    # With an impossible grey contrast the visible template is empty; a grain threshold of 0
+    # brings back every boundary between classes of different texture amplitude (all of them:
+    # the amplitudes are continuous draws), and it never removes a visible boundary.
+    none, _, _ = next(ceiling.batches("visible", 2, contrast=1.0, batch=2))
+    grain, _, _ = next(ceiling.batches("visible", 2, contrast=1.0, batch=2, grain=0.0))
+    every, _, _ = next(ceiling.batches("all-boundaries", 2, batch=2))
+    assert none.abs().max() == 0.0
+    torch.testing.assert_close(grain, every)
+    some, _, _ = next(ceiling.batches("visible", 2, contrast=0.1, batch=2))
+    more, _, _ = next(ceiling.batches("visible", 2, contrast=0.1, batch=2, grain=0.03))
+    assert (more >= some).all() and (more > some).any()
