@@ -40,11 +40,17 @@ def good(tmp_path_factory) -> bytes:
     return write_checkpoint(tmp_path_factory.mktemp("ckpt") / "good.ckpt").read_bytes()
 
 
-def test_damage_inside_a_weight_is_refused_not_loaded(good, tmp_path):
-    path = tmp_path / "damaged.ckpt"
+def _damaged_copy(good: bytes, folder: Path) -> tuple[Path, zipfile.ZipInfo]:
+    """The good checkpoint with bytes of its biggest weight flipped, and that member."""
+    path = folder / "damaged.ckpt"
     path.write_bytes(good)
     member = _largest_member(path)
     _damage_member(path, member)
+    return path, member
+
+
+def test_damage_inside_a_weight_is_refused_not_loaded(good, tmp_path):
+    path, member = _damaged_copy(good, tmp_path)
     # torch itself loads the file and hands back different weights: the check is what stops it
     intact = torch.load(io.BytesIO(good), weights_only=False)["state_dict"]
     loaded = torch.load(path, weights_only=False)["state_dict"]
@@ -99,12 +105,19 @@ class _MakesAFolder:
         return (os.mkdir, (str(self.path),))
 
 
-def test_a_checkpoint_that_would_run_code_is_refused_without_running_it(good, tmp_path):
-    marker = tmp_path / "ran"
+def _foreign_copy(good: bytes, folder: Path) -> tuple[Path, Path]:
+    """The good checkpoint with a pickled ``os.mkdir`` in its hyperparameters, and the folder
+    that loading it would make."""
+    marker = folder / "ran"
     checkpoint = torch.load(io.BytesIO(good), weights_only=True)
     checkpoint["hyper_parameters"]["payload"] = _MakesAFolder(marker)
-    path = tmp_path / "foreign.ckpt"
+    path = folder / "foreign.ckpt"
     torch.save(checkpoint, path)
+    return path, marker
+
+
+def test_a_checkpoint_that_would_run_code_is_refused_without_running_it(good, tmp_path):
+    path, marker = _foreign_copy(good, tmp_path)
     with pytest.raises(CheckpointError) as error:
         load_matcher(path)
     assert not marker.exists()
@@ -146,10 +159,7 @@ def test_a_module_made_in_python_from_omegaconf_and_numpy_values_loads_back(tmp_
 def test_lightnings_loader_refuses_damage_inside_a_weight(good, tmp_path):
     from dpcn.training.module import DPCNModule
 
-    path = tmp_path / "damaged.ckpt"
-    path.write_bytes(good)
-    member = _largest_member(path)
-    _damage_member(path, member)
+    path, member = _damaged_copy(good, tmp_path)
     with pytest.raises(CheckpointError, match="fails its CRC check") as error:
         DPCNModule.load_from_checkpoint(path)
     assert member.filename in str(error.value)
@@ -158,11 +168,7 @@ def test_lightnings_loader_refuses_damage_inside_a_weight(good, tmp_path):
 def test_lightnings_loader_refuses_code_without_running_it(good, tmp_path):
     from dpcn.training.module import DPCNModule
 
-    marker = tmp_path / "ran"
-    checkpoint = torch.load(io.BytesIO(good), weights_only=True)
-    checkpoint["hyper_parameters"]["payload"] = _MakesAFolder(marker)
-    path = tmp_path / "foreign.ckpt"
-    torch.save(checkpoint, path)
+    path, marker = _foreign_copy(good, tmp_path)
     with pytest.raises(CheckpointError, match="holds Python objects that loading it would run"):
         DPCNModule.load_from_checkpoint(str(path))
     assert not marker.exists()

@@ -94,9 +94,13 @@ def local_relief(image: Tensor, gain: float, sigma: float = 4.0) -> Tensor:
     Returns:
         ``(B, C, H, W)``, same dtype and device, in ``(-1, 1)`` for inputs in ``[0, 1]``.
     """
+    return torch.asinh(gain * (image - _gaussian_blur(image, sigma))) / math.asinh(gain)
+
+
+def _gaussian_blur(image: Tensor, sigma: float) -> Tensor:
+    """Gaussian blur of ``sigma`` pixels, ``2 ceil(3 sigma) + 1`` taps, reflected borders."""
     radius = max(1, int(math.ceil(3.0 * sigma)))
-    blurred = kornia.filters.gaussian_blur2d(image, (2 * radius + 1,) * 2, (sigma, sigma), border_type="reflect")
-    return torch.asinh(gain * (image - blurred)) / math.asinh(gain)
+    return kornia.filters.gaussian_blur2d(image, (2 * radius + 1,) * 2, (sigma, sigma), border_type="reflect")
 
 
 def local_texture(image: Tensor, sigma: float = 2.0, window: float = 3.0, gain: float = 10.0) -> Tensor:
@@ -115,13 +119,8 @@ def local_texture(image: Tensor, sigma: float = 2.0, window: float = 3.0, gain: 
     Returns:
         ``(B, C, H, W)``, same dtype and device, non-negative.
     """
-
-    def blur(x: Tensor, s: float) -> Tensor:
-        radius = max(1, int(math.ceil(3.0 * s)))
-        return kornia.filters.gaussian_blur2d(x, (2 * radius + 1,) * 2, (s, s), border_type="reflect")
-
-    detail = image - blur(image, sigma)
-    return gain * torch.sqrt(blur(detail * detail, window) + 1e-6)
+    detail = image - _gaussian_blur(image, sigma)
+    return gain * torch.sqrt(_gaussian_blur(detail * detail, window) + 1e-6)
 
 
 TEXTURE_ENERGY = ("template", "both")
