@@ -16,6 +16,11 @@ on the pairs and weights. Noise pairs are all ambiguous, so the default rows are
         [--radii 128,256]                                         # DPCN.inference_radii
         [--unet-dtype bfloat16]                                   # DPCN.unet_dtype
         [--rotation-range 0,180]                                  # also with DPCN.rotation_range (one phase-2 pass)
+        [--one-template]                                          # also one template against the batch's sources
+
+With --one-template every model also matches the batch's first template against all its sources in
+one call (a robot's map against aerial crops at many particle poses: DPCN runs the template's
+U-Nets once), timed in the same rounds as the batch of distinct pairs.
 """
 
 from __future__ import annotations
@@ -170,6 +175,11 @@ def main(argv: list[str] | None = None) -> None:
         default=None,
         help="LOW,HIGH degrees: also time each DPCN with this rotation_range (<= 180 wide: one phase-2 pass)",
     )
+    parser.add_argument(
+        "--one-template",
+        action="store_true",
+        help="also time one template against the --batch sources in one call (its U-Nets run once)",
+    )
     parser.add_argument("--bf16", action="store_true", help="autocast the U-Nets to bfloat16 (GPU)")
     parser.add_argument("--unet-dtype", choices=UNET_DTYPES, default=None, help="DPCN.unet_dtype of the timed models")
     args = parser.parse_args(argv)
@@ -225,12 +235,13 @@ def main(argv: list[str] | None = None) -> None:
         except ValueError as error:
             parser.error(str(error))
 
-    def run(model: torch.nn.Module, start: int, stop: int) -> None:
+    def run(model: torch.nn.Module, start: int, stop: int, one_template: bool = False) -> None:
         # DPCN.match: what users call (batches chunked on CPUs); the classical estimator has
         # no chunking.
         infer = getattr(model, "match", model)
+        templates = pairs[0, start : start + 1] if one_template else pairs[0, start:stop]
         with torch.inference_mode(), torch.autocast(device.split(":")[0], torch.bfloat16, enabled=args.bf16):
-            infer(pairs[0, start:stop], pairs[1, start:stop])
+            infer(templates, pairs[1, start:stop])
 
     models = {label: model.to(device).eval() for label, model in models.items()}
     if args.pairs:  # each pair's cost depends on the pair (the gate): the mean over a stream of them
@@ -242,19 +253,24 @@ def main(argv: list[str] | None = None) -> None:
         one = {label: seconds / args.batch for label, seconds in one.items()}
     else:
         one = timed_in_turn({label: partial(run, model, 0, 1) for label, model in models.items()}, device, args.rounds)
-    many = timed_in_turn(
-        {label: partial(run, model, 0, args.batch) for label, model in models.items()},
-        device,
-        max(3, args.rounds // 3),
-    )
+    batched = {label: partial(run, model, 0, args.batch) for label, model in models.items()}
+    if args.one_template:
+        for label, model in models.items():
+            batched[f"{label}, one template"] = partial(run, model, 0, args.batch, True)
+    many = timed_in_turn(batched, device, max(3, args.rounds // 3))
     width = max(34, *(len(label) for label in models))
+    shared = f" {'one template (ms/source)':>25s}" if args.one_template else ""
     print(
         f"{'model':{width}s} {'params':>9s} {'1 pair (ms)':>12s} {f'batch {args.batch} (ms/pair)':>20s} {'pairs/s':>9s}"
+        + shared
     )
     for label, model in models.items():
         params = sum(p.numel() for p in model.parameters())
         per_pair = many[label] / args.batch
-        print(f"{label:{width}s} {params:9d} {1000 * one[label]:12.1f} {1000 * per_pair:20.2f} {1 / per_pair:9.0f}")
+        row = f"{label:{width}s} {params:9d} {1000 * one[label]:12.1f} {1000 * per_pair:20.2f} {1 / per_pair:9.0f}"
+        if args.one_template:
+            row += f" {1000 * many[f'{label}, one template'] / args.batch:25.2f}"
+        print(row)
 
 
 if __name__ == "__main__":

@@ -48,6 +48,16 @@ def test_prints_one_row_per_variant_and_the_classical_estimator(bench, capsys):
     assert all(line[:params_end].endswith(row[1]) for line, row in zip(lines[2:], rows, strict=True))
 
 
+def test_one_template_adds_a_column_per_model(bench, capsys):
+    bench.main(["--presets", "tiny", "--size", "64", "--batch", "3", "--rounds", "1", "--one-template"])
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[1].endswith("one template (ms/source)")
+    rows = [re.split(r"\s{2,}", line.strip()) for line in lines[2:] if line.strip()]
+    assert [row[0] for row in rows] == ["DPCN tiny", "classical (no U-Nets)"]
+    for row in rows:  # params, alone, batched, rate, one template against the batch's sources
+        assert len(row) == 6 and float(row[5]) > 0
+
+
 def test_a_rotation_range_adds_a_variant_per_model(bench, capsys):
     bench.main(["--presets", "tiny", "--size", "64", "--batch", "2", "--rounds", "1", "--rotation-range", "0,180"])
     lines = capsys.readouterr().out.splitlines()

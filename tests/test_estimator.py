@@ -90,6 +90,23 @@ def test_batched_equals_one_by_one():
         assert angle_error(row[2], truth[2]) < 0.3
 
 
+def test_one_template_against_many_opencv_sources():
+    # A robot's map against aerial crops at many particle poses: one template, one call.
+    truths = [(5.0, 6.0, 10.0, 1.0), (-20.0, 3.0, -150.0, 0.9), (30.0, -30.0, 100.0, 1.15), (0.0, 12.5, 60.0, 1.05)]
+    image = photo("camera")
+    template = torch.from_numpy(image)[None, None]
+    sources = torch.from_numpy(np.stack([cv2_warp(image, *p) for p in truths])[:, None])
+    est = PhaseCorrelationEstimator()
+    shared = est(template, sources).as_tensor()
+    copies = est(template.repeat(len(truths), 1, 1, 1), sources).as_tensor()
+    torch.testing.assert_close(shared, copies)
+    for row, (tx, ty, angle, scale) in zip(shared, truths, strict=True):
+        assert abs(float(row[0]) - tx) < 0.5 and abs(float(row[1]) - ty) < 0.5
+        assert angle_error(row[2], angle) < 0.3 and abs(float(row[3]) - scale) < 0.01
+    with pytest.raises(ValueError, match=r"different batch sizes: 2 and 4 \(one template may be matched"):
+        est(template.repeat(2, 1, 1, 1), sources)
+
+
 def test_half_turn_ambiguity_resolved_both_ways():
     template = photo("camera")
     for angle in (30.0, 30.0 + 180.0 - 360.0):

@@ -179,6 +179,65 @@ def test_match_in_chunks_equals_one_batch_and_still_checks_inputs():
         model.match(t, s, chunk_size=0)
 
 
+@pytest.mark.parametrize(("views", "hypotheses", "ratio"), [(1, 1, 0.0), (2, 2, 0.0), (1, 2, 0.7)])
+def test_one_template_against_many_sources_equals_copies_and_runs_its_unets_once(views, hypotheses, ratio):
+    torch.manual_seed(3)
+    model = small_dpcn(rotation_views=views, rotation_hypotheses=hypotheses, hypothesis_ratio=ratio).double().eval()
+    t, s = torch.rand(1, 1, 32, 32, dtype=torch.float64), torch.rand(5, 1, 32, 32, dtype=torch.float64)
+    copies = model.match(t.repeat(5, 1, 1, 1), s, chunk_size=2)  # five real copies: the plain path
+    seen = {name: [] for name in ("rs_template", "t_template", "rs_source")}
+    hooks = [
+        getattr(model, name).register_forward_hook(lambda _m, args, _out, name=name: seen[name].append(len(args[0])))
+        for name in seen
+    ]
+    try:
+        shared = model.match(t, s, chunk_size=2)
+        expanded = model.match(t.expand(5, -1, -1, -1), s, chunk_size=2)  # as dpcn.io.prepare_pair makes it
+        out = model(t, s)
+    finally:
+        for hook in hooks:
+            hook.remove()
+    for pose in (shared, expanded, out.pose):
+        torch.testing.assert_close(pose.as_tensor(), copies.as_tensor(), atol=1e-8, rtol=1e-8)
+        torch.testing.assert_close(pose.confidence, copies.confidence, atol=1e-8, rtol=1e-8)
+    # Each call ran the template's U-Nets once on the one template (its views), not per chunk.
+    assert seen["rs_template"] == [views] * 3 and seen["t_template"] == [1] * 3
+    assert seen["rs_source"] == [2 * views, 2 * views, views] * 2 + [5 * views]  # chunks of 2, then forward
+    assert out.features["t_template"].shape[0] == 5
+
+
+def test_precomputed_template_features_are_checked_against_the_call():
+    torch.manual_seed(4)
+    model = small_dpcn().double().eval()
+    t, s = torch.rand(1, 1, 32, 32, dtype=torch.float64), torch.rand(3, 1, 32, 32, dtype=torch.float64)
+    with torch.no_grad():
+        features = model.template_features(t)
+        torch.testing.assert_close(model(t, s, features).pose.as_tensor(), model(t, s).pose.as_tensor())
+        model.rotation_views = 2
+        with pytest.raises(ValueError, match=r"template_features are of 1 template\(s\) of 32x32 with 1 view"):
+            model(t, s, features)
+        model.rotation_views = 1
+        with pytest.raises(ValueError, match="need 3 of 32x32"):
+            model(t.repeat(3, 1, 1, 1), s, features)
+    with pytest.raises(ValueError, match="only the features of one template"):
+        model.template_features(t.repeat(2, 1, 1, 1)).expand(4)
+    with pytest.raises(ValueError, match=r"different batch sizes: 2 and 3 \(one template may be matched"):
+        model.match(t.repeat(2, 1, 1, 1), s)
+
+
+def test_one_photograph_against_many_opencv_sources_in_one_call():
+    # Untrained with input_skip, DPCN is classical phase correlation: each source's own pose.
+    torch.manual_seed(0)
+    image = photo("camera", (128, 128))
+    truths = [(6.0, -4.0, 35.0, 1.1), (-10.0, 3.0, -120.0, 0.9), (0.0, 8.0, 170.0, 1.0)]
+    sources = torch.from_numpy(np.stack([cv2_warp(image, *p) for p in truths])[:, None])
+    model = DPCN(base_channels=2, depth=1, input_skip=True, image_size=(128, 128), rotation_scale_downsample=2).eval()
+    pose = model.match(torch.from_numpy(image)[None, None], sources)
+    for i, (tx, ty, angle, scale) in enumerate(truths):
+        assert angle_error(pose.angle[i], angle) < 0.5 and abs(float(pose.scale[i]) - scale) < 0.01
+        assert abs(float(pose.tx[i]) - tx) < 1.0 and abs(float(pose.ty[i]) - ty) < 1.0
+
+
 def test_temperature_is_learnable_or_fixed():
     assert small_dpcn(learnable_temperature=True).log_train_temperature.requires_grad
     fixed = small_dpcn(learnable_temperature=False, train_temperature=(0.05, 0.1))

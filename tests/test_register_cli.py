@@ -13,7 +13,7 @@ import pytest
 import torch
 
 import dpcn
-from dpcn.io import DpcnInputError, load_image, read_image, to_image_tensor
+from dpcn.io import DpcnInputError, load_image, prepare_pair, read_image, to_image_tensor
 
 from .conftest import angle_error, cv2_warp, photo
 
@@ -53,6 +53,18 @@ def test_register_torch_batch(pair):
     s = torch.from_numpy(np.stack([source, cv2_warp(template, 0.0, 0.0, -60.0, 1.1)]))[:, None]
     pose = dpcn.register(t, s)
     assert len(pose) == 2
+    check(pose[0])
+    check(pose[1], (0.0, 0.0, -60.0, 1.1))
+
+
+def test_one_template_image_against_a_batch_of_sources(pair):
+    template, source = pair
+    sources = torch.from_numpy(np.stack([source, cv2_warp(template, 0.0, 0.0, -60.0, 1.1)]))[:, None].double()
+    uint8 = (template * 255).astype(np.uint8)
+    t, s = prepare_pair(uint8, sources)
+    # converted to the sources' dtype, then expanded: still one image (DPCN runs its U-Nets once)
+    assert t.shape == (2, 1, *template.shape) and t.dtype == torch.float64 and t.stride(0) == 0
+    pose = dpcn.register(uint8, sources)
     check(pose[0])
     check(pose[1], (0.0, 0.0, -60.0, 1.1))
 

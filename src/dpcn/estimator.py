@@ -444,8 +444,9 @@ class PhaseCorrelationEstimator(nn.Module):
     """Classical Fourier-Mellin registration as a differentiable module.
 
     ``forward(template, source)`` with ``(B, C, H, W)`` tensors returns a :class:`Pose` such
-    that ``source ~= warp(template, pose)`` in the project's convention. Runs on the inputs'
-    device and dtype; gradients flow from the pose to both images.
+    that ``source ~= warp(template, pose)`` in the project's convention; a ``(1, C, H, W)``
+    template is matched against each of ``B`` sources. Runs on the inputs' device and dtype;
+    gradients flow from the pose to both images.
 
     Args:
         n_angles, n_radii, min_radius, max_radius: log-polar grid of stage 1.
@@ -537,10 +538,13 @@ class PhaseCorrelationEstimator(nn.Module):
 
     def check_inputs(self, template: Tensor, source: Tensor) -> None:
         """Raise ``ValueError`` naming the problem for a pair this estimator cannot match."""
-        check_pair(template, source, min_size=8)
+        check_pair(template, source, min_size=8, one_to_many=True)
 
     def forward(self, template: Tensor, source: Tensor) -> Pose:
+        """``(B, C, H, W)`` template and source (or one ``(1, C, H, W)`` template against
+        ``B`` sources) -> :class:`~dpcn.pose.Pose` with ``(B,)`` fields."""
         self.check_inputs(template, source)
+        template = template.expand(source.shape[0], -1, -1, -1)
         shifts = window_grid_shifts(*source.shape[-2:], *self.spectrum_window)
         options = dict(self.rotation_scale_options, source_shifts=shifts)
         with inputs_checked():

@@ -173,13 +173,12 @@ def prepare_pair(template: object, source: object, device: torch.device | str | 
         t, s = to_grey(t), to_grey(s)
         if t.shape[1] != s.shape[1]:
             raise DpcnInputError(f"template has {t.shape[1]} channels and source {s.shape[1]}; cannot reconcile")
-    if t.shape[0] != s.shape[0]:
-        if t.shape[0] == 1:
-            t = t.expand(s.shape[0], -1, -1, -1)
-        elif s.shape[0] == 1:
-            s = s.expand(t.shape[0], -1, -1, -1)
-        else:
-            raise DpcnInputError(f"template batch {t.shape[0]} and source batch {s.shape[0]} differ")
+    if t.shape[0] != s.shape[0] and 1 not in (t.shape[0], s.shape[0]):
+        raise DpcnInputError(f"template batch {t.shape[0]} and source batch {s.shape[0]} differ")
     dtype = torch.promote_types(t.dtype, s.dtype)
     target = torch.device(device) if device is not None else s.device
-    return t.to(target, dtype), s.to(target, dtype)
+    t, s = t.to(target, dtype), s.to(target, dtype)
+    # Expanded after the conversion, so the batch stays a view of one image (stride 0): DPCN
+    # then runs that image's U-Nets once.
+    batch = max(t.shape[0], s.shape[0])
+    return t.expand(batch, -1, -1, -1), s.expand(batch, -1, -1, -1)

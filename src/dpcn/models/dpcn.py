@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import kornia
 import torch
@@ -59,6 +60,7 @@ __all__ = [
     "PHASE_UNETS",
     "ROTATION_SCALE_POOLING",
     "TEXTURE_ENERGY",
+    "TemplateFeatures",
     "UNET_DTYPES",
     "half_turn",
     "local_relief",
@@ -137,8 +139,33 @@ class DPCNOutput:
     features: dict[str, Tensor]
 
 
+class TemplateFeatures(NamedTuple):
+    """A template's U-Net features for both phases (:meth:`DPCN.template_features`), to
+    match one template against many sources without running its U-Nets again.
+
+    ``rotation_scale``: ``(views * B, C, h, w)`` phase-1 features of the template's
+    ``views`` dihedral views, view-major; ``translation``: ``(B, C, H, W)`` phase-2 features.
+    """
+
+    rotation_scale: Tensor
+    translation: Tensor
+    views: int
+
+    def expand(self, n: int) -> TemplateFeatures:
+        """The features of one template (``B = 1``) for ``n`` pairs, in the layout a batch of
+        ``n`` identical templates would have (phase 2's without a copy)."""
+        if self.translation.shape[0] != 1:
+            raise ValueError(f"only the features of one template can be expanded, got {self.translation.shape[0]}")
+        rs = self.rotation_scale
+        rs = rs[:, None].expand(-1, n, -1, -1, -1).reshape(self.views * n, *rs.shape[1:])
+        return TemplateFeatures(rs, self.translation.expand(n, -1, -1, -1), self.views)
+
+
 class DPCN(nn.Module):
     """Deep Phase Correlation Network. ``forward(template, source) -> DPCNOutput``.
+
+    A ``(1, C, H, W)`` template is matched against each of ``B`` sources with its U-Nets run
+    once (e.g. a robot's local map against aerial crops at many particle poses).
 
     Args:
         in_channels: image channels (1 or 3).
@@ -443,7 +470,10 @@ class DPCN(nn.Module):
         return self.log_train_temperature.exp()
 
     def check_inputs(self, template: Tensor, source: Tensor) -> None:
-        check_pair(template, source, min_size=8 * self.rotation_scale_downsample)
+        """Raise ``ValueError`` naming the problem for inputs this model cannot match:
+        ``(B, C, H, W)`` templates and sources of the built size and channels, or one
+        ``(1, C, H, W)`` template against ``B`` sources."""
+        check_pair(template, source, min_size=8 * self.rotation_scale_downsample, one_to_many=True)
         if template.shape[1] != self.in_channels:
             raise ValueError(f"this model takes {self.in_channels}-channel images, got {template.shape[1]} channels")
         if self.image_size is not None and tuple(template.shape[-2:]) != self.image_size:
@@ -498,6 +528,20 @@ class DPCN(nn.Module):
         wanted = -torch.stack([ty, tx], dim=1).detach() / self.rotation_scale_downsample
         return grid[torch.cdist(wanted.to(torch.float64), grid.to(torch.float64)).argmin(dim=1)]
 
+    def rotation_scale_template_features(self, template: Tensor, views: int = 1) -> Tensor:
+        """The template's phase-1 features: ``(B, C, H, W) -> (views * B, C', H / d, W / d)``
+        for its ``views`` dihedral views, view-major."""
+        template_views = dihedral_views(template, views)
+        template_in = self.with_texture(template_views, self.template_unet_input(template_views), "template")
+        return self.rs_template(self.rotation_scale_unet_input(template_in))
+
+    def template_features(self, template: Tensor) -> TemplateFeatures:
+        """The template's features for both phases with this model's ``rotation_views``:
+        what :meth:`forward` computes of a template, for reuse against many sources."""
+        views = self.rotation_views
+        translation = self.t_template(self.template_unet_input(template))
+        return TemplateFeatures(self.rotation_scale_template_features(template, views), translation, views)
+
     def rotation_scale(
         self,
         template: Tensor,
@@ -507,6 +551,7 @@ class DPCN(nn.Module):
         views: int = 1,
         source_shifts: Tensor | None = None,
         radii: int | None = None,
+        template_features: Tensor | None = None,
     ) -> tuple[RotationScale, dict[str, Tensor]]:
         """Phase 1: features, then rotation (mod 180 degrees) and scale (and the next
         strongest peaks, ``hypotheses`` in all, as ``candidate_*``), with the source spectrum
@@ -516,14 +561,17 @@ class DPCN(nn.Module):
         ``source_shifts`` (training, with one window and one view): ``(B, 2)`` integer circular
         shifts ``(rows, cols)`` of each pair's source features before the spectrum, which moves
         its window (see :meth:`nearest_window_shifts`). ``radii``: columns of the log-polar
-        maps (``None``: ``n_radii``, what training uses).
+        maps (``None``: ``n_radii``, what training uses). ``template_features``: the
+        template's (:meth:`rotation_scale_template_features` with ``views``) if already
+        computed.
 
         The features are ``(B, C, H / d, W / d)`` with ``d = rotation_scale_downsample`` (of
         the first view, the pair as given), unshifted.
         """
-        template_views, source_views = dihedral_views(template, views), dihedral_views(source, views)
-        template_in = self.with_texture(template_views, self.template_unet_input(template_views), "template")
-        rs_template = self.rs_template(self.rotation_scale_unet_input(template_in))
+        rs_template = template_features
+        if rs_template is None:
+            rs_template = self.rotation_scale_template_features(template, views)
+        source_views = dihedral_views(source, views)
         source_in = self.with_texture(source_views, source_views, "source")
         rs_source = self.rs_source(self.rotation_scale_unet_input(source_in))
         windowed = rs_source
@@ -670,13 +718,32 @@ class DPCN(nn.Module):
             torch.div(choice, len(results), rounding_mode="floor"),
         )
 
-    def forward(self, template: Tensor, source: Tensor) -> DPCNOutput:
-        """End to end, no ground truth: ``(B, C, H, W) x 2 -> DPCNOutput``."""
+    def forward(
+        self, template: Tensor, source: Tensor, template_features: TemplateFeatures | None = None
+    ) -> DPCNOutput:
+        """End to end, no ground truth: ``(B, C, H, W) x 2 -> DPCNOutput``; a ``(1, C, H, W)``
+        template is matched against each of the ``B`` sources, its U-Nets run once.
+
+        ``template_features``: the template's :meth:`template_features`, if already computed
+        (e.g. once for a stream of source batches).
+        """
         self.check_inputs(template, source)
         k = self.rotation_hypotheses
         with inputs_checked():
+            if template_features is None:
+                template_features = self.template_features(template)
+            self._check_template_features(template, template_features)
+            if template.shape[0] != source.shape[0]:  # one template, many sources
+                template = template.expand(source.shape[0], -1, -1, -1)
+                template_features = template_features.expand(source.shape[0])
             rs, features = self.rotation_scale(
-                template, source, k, self.spectrum_window_grid, self.rotation_views, radii=self.inference_radii
+                template,
+                source,
+                k,
+                self.spectrum_window_grid,
+                self.rotation_views,
+                radii=self.inference_radii,
+                template_features=template_features.rotation_scale,
             )
             angle = rs.candidate_angle  # (B, K)
             known = self.rotation_range
@@ -686,7 +753,7 @@ class DPCN(nn.Module):
             valid = torch.isfinite(rs.candidate_score)
 
             def phase2(
-                rows: Tensor | slice, first: int, stop: int, ft: Tensor | None = None
+                rows: Tensor | slice, first: int, stop: int, ft: Tensor
             ) -> tuple[Translation, dict[str, Tensor], Tensor, Tensor]:
                 """Phase 2 on candidates ``first:stop`` of the pairs ``rows``: the winner's
                 translation, features, candidate index and un-warped source."""
@@ -700,10 +767,11 @@ class DPCN(nn.Module):
                 picked = torch.arange(len(choice), device=choice.device)
                 return tr, t_features, choice + first, unwarped.view(-1, n, *unwarped.shape[1:])[picked, choice]
 
+            ft = template_features.translation
             if k == 1 or self.hypothesis_ratio == 0:  # every pair, all its candidates at once
-                tr, t_features, choice, unwarped = phase2(slice(None), 0, k)
+                tr, t_features, choice, unwarped = phase2(slice(None), 0, k, ft)
             else:  # every pair's first peak, then the further peaks of the ambiguous pairs
-                tr, t_features, choice, unwarped = phase2(slice(None), 0, 1)
+                tr, t_features, choice, unwarped = phase2(slice(None), 0, 1, ft)
                 rows = self.ambiguous_pairs(rs.candidate_score).nonzero().squeeze(1)
                 if len(rows):
                     further = phase2(rows, 1, k, t_features["t_template"][rows])
@@ -723,6 +791,16 @@ class DPCN(nn.Module):
         pose = Pose(tr.tx, tr.ty, wrap_angle(tr.angle), scale, tr.confidence)
         return DPCNOutput(pose, rs, tr, unwarped, {**features, **t_features})
 
+    def _check_template_features(self, template: Tensor, features: TemplateFeatures) -> None:
+        expected = (self.rotation_views, template.shape[0], tuple(template.shape[-2:]))
+        got = (features.views, features.translation.shape[0], tuple(features.translation.shape[-2:]))
+        if got != expected:
+            raise ValueError(
+                f"template_features are of {got[1]} template(s) of {got[2][0]}x{got[2][1]} with "
+                f"{got[0]} view(s); these inputs need {expected[1]} of {expected[2][0]}x{expected[2][1]} with "
+                f"rotation_views={expected[0]}: compute them with template_features(template) after any change"
+            )
+
     def ambiguous_pairs(self, candidate_score: Tensor) -> Tensor:
         """``(B,)`` the pairs whose second phase-1 peak reaches ``hypothesis_ratio`` times
         their first (``candidate_score``: ``(B, K)``, strongest first)."""
@@ -740,6 +818,10 @@ class DPCN(nn.Module):
         full-resolution feature maps of bigger batches fall out of the cache, and the time per
         pair grows instead of shrinking (32 pairs at once: ~2x slower per pair than 8 at a
         time on 2 cores).
+
+        One template against many sources (a ``(1, C, H, W)`` template, or a batch expanded
+        from one, as :func:`dpcn.io.prepare_pair` makes it): the template's U-Nets run once
+        for all the chunks.
         """
         if chunk_size is None:
             chunk_size = max(1, 8 // self.rotation_views) if template.device.type == "cpu" else template.shape[0]
@@ -748,11 +830,16 @@ class DPCN(nn.Module):
         was_training = self.training
         self.eval()
         try:
-            if template.shape[0] <= chunk_size:
-                return self(template, source).pose
             self.check_inputs(template, source)  # the whole batch once; chunks check shapes only
-            chunks = zip(template.split(chunk_size), source.split(chunk_size), strict=True)
+            if template.shape[0] > 1 and template.stride(0) == 0:  # copies of one template
+                template = template[:1]
             with inputs_checked():
+                features = self.template_features(template) if template.shape[0] == 1 else None
+                if source.shape[0] <= chunk_size:
+                    return self(template, source, features).pose
+                if features is not None:
+                    return Pose.cat([self(template, s, features).pose for s in source.split(chunk_size)])
+                chunks = zip(template.split(chunk_size), source.split(chunk_size), strict=True)
                 return Pose.cat([self(t, s).pose for t, s in chunks])
         finally:
             self.train(was_training)

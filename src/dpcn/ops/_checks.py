@@ -49,8 +49,17 @@ def check_image(image: object, name: str = "image", min_size: int = 2) -> Tensor
     return image
 
 
-def check_pair(a: Tensor, b: Tensor, names: tuple[str, str] = ("template", "source"), min_size: int = 2) -> None:
-    """Check two image batches for shape, dtype and device agreement."""
+def check_pair(
+    a: Tensor,
+    b: Tensor,
+    names: tuple[str, str] = ("template", "source"),
+    min_size: int = 2,
+    one_to_many: bool = False,
+) -> None:
+    """Check two image batches for shape, dtype and device agreement.
+
+    ``one_to_many``: ``a`` may also be a batch of one, matched against every image of ``b``.
+    """
     check_image(a, names[0], min_size)
     check_image(b, names[1], min_size)
     if a.shape[-2:] != b.shape[-2:]:
@@ -58,8 +67,9 @@ def check_pair(a: Tensor, b: Tensor, names: tuple[str, str] = ("template", "sour
             f"{names[0]} and {names[1]} must have the same size, got "
             f"{a.shape[-2]}x{a.shape[-1]} and {b.shape[-2]}x{b.shape[-1]}"
         )
-    if a.shape[0] != b.shape[0]:
-        raise ValueError(f"{names[0]} and {names[1]} have different batch sizes: {a.shape[0]} and {b.shape[0]}")
+    if a.shape[0] != b.shape[0] and not (one_to_many and a.shape[0] == 1):
+        hint = f" (one {names[0]} may be matched against many {names[1]}s)" if one_to_many else ""
+        raise ValueError(f"{names[0]} and {names[1]} have different batch sizes: {a.shape[0]} and {b.shape[0]}{hint}")
     if a.shape[1] != b.shape[1]:
         raise ValueError(f"{names[0]} and {names[1]} have different channel counts: {a.shape[1]} and {b.shape[1]}")
     if a.dtype != b.dtype or a.device != b.device:
