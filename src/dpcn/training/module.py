@@ -264,7 +264,8 @@ class DPCNModule(_EvaluationMixin, L.LightningModule):
 
     # ---------------------------------------------------------------- inference
     def match(self, template: Tensor, source: Tensor) -> Pose:
-        """Pose of ``source`` relative to ``template`` (tensors ``(B, C, H, W)`` or arrays)."""
+        """Pose of ``source`` relative to ``template`` (tensors ``(B, C, H, W)`` or arrays); one
+        template (a batch of one, or an array) is matched against every source of a batch."""
         if not (isinstance(template, Tensor) and template.ndim == 4):
             template, source = prepare_pair(template, source, self.device)
         return self.model.match(template.to(self.device), source.to(self.device))
