@@ -219,6 +219,9 @@ def test_precomputed_template_features_are_checked_against_the_call():
         model.rotation_views = 1
         with pytest.raises(ValueError, match="need 3 of 32x32"):
             model(t.repeat(3, 1, 1, 1), s, features)
+        wider = small_dpcn(feature_channels=2).double().eval().template_features(t)  # another model's
+        with pytest.raises(ValueError, match="with 1 view\\(s\\) and 2 channels; these inputs need 1 of 32x32"):
+            model(t, s, wider)
     with pytest.raises(ValueError, match="only the features of one template"):
         model.template_features(t.repeat(2, 1, 1, 1)).expand(4)
     with pytest.raises(ValueError, match=r"different batch sizes: 2 and 3 \(one template may be matched"):

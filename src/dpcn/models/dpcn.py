@@ -792,13 +792,24 @@ class DPCN(nn.Module):
         return DPCNOutput(pose, rs, tr, unwarped, {**features, **t_features})
 
     def _check_template_features(self, template: Tensor, features: TemplateFeatures) -> None:
-        expected = (self.rotation_views, template.shape[0], tuple(template.shape[-2:]))
-        got = (features.views, features.translation.shape[0], tuple(features.translation.shape[-2:]))
-        if got != expected:
+        """``features`` must be this model's :meth:`template_features` of ``template``: its
+        views, batch, size and feature channels (of both phases)."""
+        batch, size = template.shape[0], tuple(template.shape[-2:])
+        channels = (self.rs_template.head.out_channels, self.t_template.head.out_channels)
+        d = self.rotation_scale_downsample
+        rs_shape = (self.rotation_views * batch, channels[0], -(-size[0] // d), -(-size[1] // d))
+        fits = (
+            features.views == self.rotation_views
+            and tuple(features.translation.shape) == (batch, channels[1], *size)
+            and tuple(features.rotation_scale.shape) == rs_shape
+        )
+        if not fits:
+            got = features.translation.shape
             raise ValueError(
-                f"template_features are of {got[1]} template(s) of {got[2][0]}x{got[2][1]} with "
-                f"{got[0]} view(s); these inputs need {expected[1]} of {expected[2][0]}x{expected[2][1]} with "
-                f"rotation_views={expected[0]}: compute them with template_features(template) after any change"
+                f"template_features are of {got[0]} template(s) of {got[-2]}x{got[-1]} with {features.views} "
+                f"view(s) and {got[1]} channels; these inputs need {batch} of {size[0]}x{size[1]} with "
+                f"rotation_views={self.rotation_views} and {channels[1]} channels: compute them with this "
+                "model's template_features(template) after any change"
             )
 
     def ambiguous_pairs(self, candidate_score: Tensor) -> Tensor:
