@@ -844,13 +844,11 @@ class DPCN(nn.Module):
             self.check_inputs(template, source)  # the whole batch once; chunks check shapes only
             if template.shape[0] > 1 and template.stride(0) == 0:  # copies of one template
                 template = template[:1]
+            sources = source.split(chunk_size)
+            shared = template.shape[0] == 1
+            templates = [template] * len(sources) if shared else template.split(chunk_size)
             with inputs_checked():
-                features = self.template_features(template) if template.shape[0] == 1 else None
-                if source.shape[0] <= chunk_size:
-                    return self(template, source, features).pose
-                if features is not None:
-                    return Pose.cat([self(template, s, features).pose for s in source.split(chunk_size)])
-                chunks = zip(template.split(chunk_size), source.split(chunk_size), strict=True)
-                return Pose.cat([self(t, s).pose for t, s in chunks])
+                features = self.template_features(template) if shared else None
+                return Pose.cat([self(t, s, features).pose for t, s in zip(templates, sources, strict=True)])
         finally:
             self.train(was_training)
