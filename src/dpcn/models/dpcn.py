@@ -835,7 +835,7 @@ class DPCN(nn.Module):
         for all the chunks.
         """
         if chunk_size is None:
-            chunk_size = max(1, 8 // self.rotation_views) if template.device.type == "cpu" else template.shape[0]
+            chunk_size = max(1, 8 // self.rotation_views) if source.device.type == "cpu" else source.shape[0]
         if chunk_size < 1:
             raise ValueError(f"chunk_size must be >= 1, got {chunk_size}")
         was_training = self.training
