@@ -107,6 +107,38 @@ def test_one_template_against_many_opencv_sources():
         est(template.repeat(2, 1, 1, 1), sources)
 
 
+def test_one_template_spectra_and_dfts_are_computed_once(monkeypatch):
+    # Matching a shared template must not redo its per-image work for every source: count the
+    # images that go through a 2-D DFT (stage 1's spectra and log-polar correlation, stage 2).
+    image = photo("camera", (128, 128))
+    truths = [(5.0, 6.0, 10.0, 1.0), (-20.0, 3.0, -150.0, 0.9), (30.0, -30.0, 100.0, 1.15)]
+    template = torch.from_numpy(image)[None, None]
+    sources = torch.from_numpy(np.stack([cv2_warp(image, *p) for p in truths])[:, None])
+    transformed = []
+    rfft2 = torch.fft.rfft2
+
+    def counted(x, *args, **kwargs):
+        transformed.append(x.shape[:-2].numel())
+        return rfft2(x, *args, **kwargs)
+
+    monkeypatch.setattr(torch.fft, "rfft2", counted)
+    est = PhaseCorrelationEstimator()
+    shared = est(template, sources).as_tensor()
+    shared_count = sum(transformed)
+    transformed.clear()
+    copies = est(template.repeat(3, 1, 1, 1), sources).as_tensor()
+    torch.testing.assert_close(shared, copies, atol=0.0, rtol=0.0)
+    # copies: 3 templates + 3 sources in each of the three DFT steps; shared: 1 + 3
+    assert (shared_count, sum(transformed)) == (12, 18)
+
+
+def test_gradcheck_one_template_against_many_sources():
+    a, b = _small_images()
+    sources = torch.cat([b, b.flip(-1)]).detach().requires_grad_()
+    est = PhaseCorrelationEstimator(n_angles=16, n_radii=12, window=2)
+    assert gradcheck(lambda x, y: est(x, y).as_tensor(), (a, sources), eps=1e-6, atol=1e-4)
+
+
 def test_half_turn_ambiguity_resolved_both_ways():
     template = photo("camera")
     for angle in (30.0, 30.0 + 180.0 - 360.0):

@@ -20,7 +20,7 @@ import torch
 from torch import Tensor, nn
 
 from ._validate import check_bool, check_ints, check_number
-from .ops._checks import check_pair, full_precision, inputs_checked
+from .ops._checks import check_pair, copies_of_one, full_precision, inputs_checked
 from .ops.correlation import correlation_surface, cross_power_spectrum, phase_correlation_1d
 from .ops.logpolar import log_polar, log_polar_grid, log_radius_step
 from .ops.soft_argmax import local_maxima2d, soft_argmax2d
@@ -278,7 +278,9 @@ def estimate_rotation_scale(
     """Rotation (mod 180 degrees) and scale of ``source`` relative to ``template``.
 
     Args:
-        template, source: ``(B, C, H, W)`` images or feature maps.
+        template, source: ``(B, C, H, W)`` images or feature maps. A template batch expanded
+            from one image (``template.expand(B, -1, -1, -1)``, stride 0) has its spectrum
+            and log-polar map computed once: one template against many sources.
         n_angles, n_radii, min_radius, max_radius: log-polar grid (see
             :func:`dpcn.ops.log_polar`); ``180 / n_angles`` degrees per row.
         highpass: apply the Reddy high-pass filter to the magnitude spectra.
@@ -316,13 +318,15 @@ def estimate_rotation_scale(
         raise ValueError(f"{template.shape[0]} maps are not {views} views of whole pairs")
     shifts = [tuple(int(v) for v in shift) for shift in source_shifts if tuple(shift) != (0, 0)]
     sources = [source] + [torch.roll(source, shift, dims=(-2, -1)) for shift in shifts]
+    batch = len(template)
+    # One template expanded over the batch: its spectrum and map once, expanded again after.
+    templates = template[:1] if copies_of_one(template) else template
     # All spectra in one batch: half spectra (point symmetry) sampled on angles [-90, 90).
     spectra = magnitude_spectrum(
-        torch.cat([template, *sources]), window=True, highpass=highpass, log=log_spectrum, half=True
+        torch.cat([templates, *sources]), window=True, highpass=highpass, log=log_spectrum, half=True
     )
     maps = log_polar(spectra, n_angles, n_radii, min_radius, max_radius, half=True, width=template.shape[-1])
-    batch = len(template)
-    lp_t, lp_all = maps[:batch], maps[batch:]
+    lp_t, lp_all = maps[: len(templates)].expand(batch, -1, -1, -1), maps[len(templates) :]
     lp_s = lp_all[:batch]
     surface = log_polar_correlation(lp_t, lp_all.view(len(sources), *lp_t.shape), sigma, correlation)
     if shifts:
@@ -392,7 +396,8 @@ def estimate_translation(
     """Translation of the source, from the template and the un-rotated/un-scaled source.
 
     Args:
-        template: ``(B, C, H, W)`` template images or features.
+        template: ``(B, C, H, W)`` template images or features (expanded from one, stride 0:
+            its DFT is computed once).
         unwarped_source: ``(B, C, H, W)`` source after :func:`unwarp_rotation_scale` with
             ``angle`` and ``scale`` (or features of it).
         angle, scale: ``(B,)`` the stage-1 estimate used for the un-warp.
@@ -409,7 +414,9 @@ def estimate_translation(
     """
     check_pair(template, unwarped_source, ("template", "unwarped_source"))
     _, _, height, width = template.shape
-    a, b = template, unwarped_source
+    # One template expanded over the batch: its DFT once (the product broadcasts).
+    a = template[:1] if copies_of_one(template) else template
+    b = unwarped_source
     a = a - a.mean(dim=(-2, -1), keepdim=True)
     b = b - b.mean(dim=(-2, -1), keepdim=True)
     if apodize:
@@ -445,8 +452,8 @@ class PhaseCorrelationEstimator(nn.Module):
 
     ``forward(template, source)`` with ``(B, C, H, W)`` tensors returns a :class:`Pose` such
     that ``source ~= warp(template, pose)`` in the project's convention; a ``(1, C, H, W)``
-    template is matched against each of ``B`` sources. Runs on the inputs' device and dtype;
-    gradients flow from the pose to both images.
+    template is matched against each of ``B`` sources, its spectra and DFTs computed once.
+    Runs on the inputs' device and dtype; gradients flow from the pose to both images.
 
     Args:
         n_angles, n_radii, min_radius, max_radius: log-polar grid of stage 1.

@@ -49,7 +49,7 @@ from ..estimator import (
     unwarp_rotation_scale,
     window_grid_shifts,
 )
-from ..ops._checks import check_pair, inputs_checked
+from ..ops._checks import check_pair, copies_of_one, inputs_checked
 from ..ops.logpolar import log_polar_grid, log_radius_step
 from ..pose import Pose, wrap_angle
 from .unet import UNet
@@ -842,7 +842,7 @@ class DPCN(nn.Module):
         self.eval()
         try:
             self.check_inputs(template, source)  # the whole batch once; chunks check shapes only
-            if template.shape[0] > 1 and template.stride(0) == 0:  # copies of one template
+            if copies_of_one(template):  # copies of one template
                 template = template[:1]
             sources = source.split(chunk_size)
             shared = template.shape[0] == 1

@@ -30,6 +30,12 @@ def inputs_checked() -> Iterator[None]:
         _SCAN_VALUES.reset(token)
 
 
+def copies_of_one(x: Tensor) -> bool:
+    """Whether the batch ``x`` is copies of one tensor made by ``expand`` (stride 0 along the
+    batch): work per image on it can then be done once, on ``x[:1]``, and expanded."""
+    return x.ndim > 0 and x.shape[0] > 1 and x.stride(0) == 0
+
+
 def check_image(image: object, name: str = "image", min_size: int = 2) -> Tensor:
     """Check that ``image`` is a finite floating ``(B, C, H, W)`` tensor and return it."""
     if not isinstance(image, Tensor):

@@ -7,7 +7,7 @@ import math
 import torch
 from torch import Tensor, nn
 
-from ._checks import check_pair, full_precision
+from ._checks import check_pair, copies_of_one, full_precision
 
 __all__ = [
     "cross_power_spectrum",
@@ -35,13 +35,15 @@ def cross_power_spectrum(a: Tensor, b: Tensor) -> Tensor:
     that mirrored ``b`` is ``conj(B * A)`` at no extra DFT.
 
     ``b`` may carry extra leading dimensions, ``(..., B, C, H, W) -> (..., B, H, W // 2 + 1)``:
-    several ``b`` against one ``a``, whose DFT is then computed once.
+    several ``b`` against one ``a``, whose DFT is then computed once. So is the DFT of an
+    ``a`` expanded from one map (stride 0 along the batch: one template, many sources).
     """
     if isinstance(b, Tensor) and b.ndim > 4:
         check_pair(a, b[(0,) * (b.ndim - 4)], ("a", "b"))
     else:
         check_pair(a, b, ("a", "b"))
-    return (torch.fft.rfft2(b) * torch.fft.rfft2(a).conj()).sum(dim=-3)
+    fa = torch.fft.rfft2(a[:1]) if copies_of_one(a) else torch.fft.rfft2(a)
+    return (torch.fft.rfft2(b) * fa.conj()).sum(dim=-3)
 
 
 def correlation_surface(cross: Tensor, size: tuple[int, int], sigma: float = 0.0, eps: float = 1e-6) -> Tensor:
