@@ -214,3 +214,38 @@ def test_frozen_batchnorm_statistics_do_not_move():
 def test_bad_freeze_is_refused(freeze, message):
     with pytest.raises(ValueError, match=re.escape(message)):
         DPCNModule(net=NET, freeze=freeze)
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        (lambda t, s, p: {"template": t[:1], "source": s, "pose": p}, "pairs each template with one source; got 1"),
+        (lambda t, s, p: {"template": t, "source": s, "pose": p[:, :3]}, r"pose must be \(4, 4\).*got \(4, 3\)"),
+        (lambda t, s, p: {"template": t, "source": s, "pose": p[:2]}, r"pose must be \(4, 4\).*got \(2, 4\)"),
+        (
+            lambda t, s, p: {"template": t, "source": s, "pose": p.index_fill(0, torch.tensor([1]), float("nan"))},
+            "finite",
+        ),
+        (lambda t, s, p: {"image": t, "source": s, "pose": p}, r"keys template, source, pose; got \['image'"),
+        (lambda t, s, p: (t, s, p), "a dict with the keys template, source, pose; got tuple"),
+    ],
+)
+def test_bad_training_batches_are_named(change, message):
+    # A user's own dataset may hand over batches of another form: one line, before any torch op.
+    module = DPCNModule(net=NET)
+    with pytest.raises(ValueError, match=message):
+        module.training_step(change(*batch()), 0)
+
+
+def test_evaluation_matches_one_template_against_a_batch_of_sources():
+    # Evaluation, unlike training, may match one template against every source of a batch.
+    torch.manual_seed(0)
+    module = DPCNModule(net=NET)
+    templates, sources, poses = batch()
+    module._reset()
+    errors = module._evaluate_batch({"template": templates[:1], "source": sources, "pose": poses})
+    copies = module._evaluate_batch({"template": templates[:1].repeat(4, 1, 1, 1), "source": sources, "pose": poses})
+    assert errors.shape[0] == 4 and len(module._records) == 2
+    torch.testing.assert_close(errors, copies)
+    with pytest.raises(ValueError, match=r"pose must be \(4, 4\)"):
+        module._evaluate_batch({"template": templates[:1], "source": sources, "pose": poses[:1]})

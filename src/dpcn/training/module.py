@@ -73,6 +73,36 @@ def _check_freeze(freeze: object) -> tuple[str, ...]:
     return tuple(dict.fromkeys(parts))
 
 
+def check_batch(batch: object, paired: bool) -> tuple[Tensor, Tensor, Tensor]:
+    """The ``template``, ``source`` and ``pose`` of a loader's batch, with a one-line error for
+    a batch of another form (a user's dataset): ``pose`` must be ``(B, 4)`` for the ``B``
+    sources, and ``paired`` (training) asks one template per source (evaluation may also match
+    one template against every source). The images themselves are checked by the matcher."""
+    keys = ("template", "source", "pose")
+    if not isinstance(batch, dict) or any(key not in batch for key in keys):
+        found = sorted(map(str, batch)) if isinstance(batch, dict) else type(batch).__name__
+        raise ValueError(f"a batch must be a dict with the keys {', '.join(keys)}; got {found}")
+    template, source, pose = (batch[key] for key in keys)
+    sources = source.shape[0] if isinstance(source, Tensor) and source.ndim == 4 else None
+    templates = template.shape[0] if isinstance(template, Tensor) and template.ndim == 4 else None
+    if sources is None or templates is None:
+        return template, source, pose  # the matcher's check names what is wrong with them
+    if not isinstance(pose, Tensor) or tuple(pose.shape) != (sources, 4):
+        shape = tuple(pose.shape) if isinstance(pose, Tensor) else type(pose).__name__
+        raise ValueError(
+            f"a batch's pose must be ({sources}, 4) for its {sources} sources (x, y, angle, scale); got {shape}"
+        )
+    if not pose.is_floating_point() or not torch.isfinite(pose).all():
+        raise ValueError(
+            f"a batch's pose must hold finite floating-point values; got {pose.dtype} with {pose.tolist()}"
+        )
+    if paired and templates != sources:
+        raise ValueError(
+            f"a training batch pairs each template with one source; got {templates} templates and {sources} sources"
+        )
+    return template, source, pose
+
+
 class _EvaluationMixin:
     """Shared validation/test logic: per-pair errors gathered over the epoch, the paper's metrics."""
 
@@ -82,10 +112,11 @@ class _EvaluationMixin:
         self._records: list[Tensor] = []
 
     def _evaluate_batch(self, batch: dict[str, Tensor]) -> Tensor:
-        pose = self.match(batch["template"], batch["source"])
-        estimate = pose.as_tensor().to(batch["pose"].device).double()
+        template, source, truth = check_batch(batch, paired=False)
+        pose = self.match(template, source)
+        estimate = pose.as_tensor().to(truth.device).double()
         confidence = pose.confidence if pose.confidence is not None else torch.full_like(estimate[:, 0], float("nan"))
-        truth = batch["pose"].double()
+        truth = truth.double()
         # (B, 9): the true pose, the estimate and its confidence, kept for the per-pair table.
         self._records.append(torch.cat([truth, estimate, confidence.to(estimate).reshape(-1, 1)], dim=1).detach())
         return pose_errors(estimate, truth)
@@ -284,7 +315,7 @@ class DPCNModule(_EvaluationMixin, L.LightningModule):
         return (torch.rand(batch_size, generator=generator) < self.hparams.teacher_forcing).to(self.device)
 
     def training_step(self, batch: dict[str, Tensor], batch_idx: int) -> Tensor:
-        template, source, gt = batch["template"], batch["source"], batch["pose"]
+        template, source, gt = check_batch(batch, paired=True)
         self.model.check_inputs(template, source)
         with inputs_checked():
             return self._training_loss(template, source, gt)
