@@ -15,12 +15,18 @@ on the pairs and weights. Noise pairs are all ambiguous, so the default rows are
         [--hypothesis-ratios 0,0.7] [--pairs heterogeneous]      # gated hypotheses: their cost depends on the pairs
         [--radii 128,256]                                         # DPCN.inference_radii
         [--unet-dtype bfloat16]                                   # DPCN.unet_dtype
+        [--compile [BACKEND]]                                     # torch.compile the U-Nets (default inductor)
         [--rotation-range 0,180]                                  # also with DPCN.rotation_range (one phase-2 pass)
         [--one-template]                                          # also one template against the batch's sources
 
 With --one-template every model also matches the batch's first template against all its sources in
 one call (a robot's map against aerial crops at many particle poses: DPCN runs the template's
 U-Nets once), timed in the same rounds as the batch of distinct pairs.
+
+With --compile each DPCN's four U-Nets go through ``torch.compile`` (``nn.Module.compile``;
+the rest of the pipeline stays eager). The warm-up call of each timed call compiles it; a
+batch of a shape not seen before (a gated hypothesis check's share of the batch) compiles
+again within the timed rounds, so read such rows with --hypotheses 1 or --pairs left out.
 """
 
 from __future__ import annotations
@@ -39,7 +45,7 @@ from omegaconf import OmegaConf
 from dpcn import PhaseCorrelationEstimator
 from dpcn.data.simulation import SIM_KINDS, SimulatedPairs
 from dpcn.models import DPCN
-from dpcn.models.dpcn import UNET_DTYPES
+from dpcn.models.dpcn import PHASE_UNETS, UNET_DTYPES
 
 CONF = Path(__file__).resolve().parents[1] / "conf" / "model"
 TIMED_SETTINGS = (  # the preset's architecture and its cost-bearing inference settings
@@ -182,7 +188,17 @@ def main(argv: list[str] | None = None) -> None:
     )
     parser.add_argument("--bf16", action="store_true", help="autocast the U-Nets to bfloat16 (GPU)")
     parser.add_argument("--unet-dtype", choices=UNET_DTYPES, default=None, help="DPCN.unet_dtype of the timed models")
+    parser.add_argument(
+        "--compile",
+        nargs="?",
+        const="inductor",
+        default=None,
+        metavar="BACKEND",
+        help="torch.compile the four U-Nets of each DPCN with this backend (default: inductor)",
+    )
     args = parser.parse_args(argv)
+    if args.compile is not None and args.compile not in torch.compiler.list_backends(exclude_tags=()):
+        parser.error(f"--compile: {args.compile!r} is not a torch.compile backend (torch.compiler.list_backends())")
     torch.set_num_threads(args.threads)
     device = args.device
     name = torch.cuda.get_device_name() if device.startswith("cuda") else f"CPU, {args.threads} threads"
@@ -220,6 +236,11 @@ def main(argv: list[str] | None = None) -> None:
         for label in list(models):
             models[label].unet_dtype = args.unet_dtype
             models[f"{label}, {args.unet_dtype} U-Nets"] = models.pop(label)
+    if args.compile:
+        for label in list(models):
+            for unet in (n for names in PHASE_UNETS.values() for n in names):
+                getattr(models[label], unet).compile(backend=args.compile)
+            models[f"{label}, compiled ({args.compile})"] = models.pop(label)
     models["classical (no U-Nets)"] = PhaseCorrelationEstimator()
 
     if args.pairs:  # the test split of the sim data configs (seed 2)

@@ -58,6 +58,15 @@ def test_one_template_adds_a_column_per_model(bench, capsys):
         assert len(row) == 6 and float(row[5]) > 0
 
 
+def test_compiled_unets_are_timed_as_their_own_rows(bench, capsys):
+    # The eager backend traces the U-Nets with dynamo without a C++ compiler (CI machines).
+    bench.main(["--presets", "tiny", "--size", "64", "--batch", "2", "--rounds", "1", "--compile", "eager"])
+    lines = capsys.readouterr().out.splitlines()
+    rows = [re.split(r"\s{2,}", line.strip()) for line in lines[2:] if line.strip()]
+    assert [row[0] for row in rows] == ["DPCN tiny, compiled (eager)", "classical (no U-Nets)"]
+    assert all(float(row[2]) > 0 and float(row[3]) > 0 for row in rows)
+
+
 def test_a_rotation_range_adds_a_variant_per_model(bench, capsys):
     bench.main(["--presets", "tiny", "--size", "64", "--batch", "2", "--rounds", "1", "--rotation-range", "0,180"])
     lines = capsys.readouterr().out.splitlines()
@@ -82,6 +91,10 @@ def test_gated_hypotheses_on_simulated_pairs(bench, capsys):
         (["--hypothesis-ratios", "2"], "hypothesis_ratio must be a finite number in [0, 1], got 2.0"),
         (["--ckpt", "no/such.ckpt"], "checkpoint not found: no/such.ckpt"),
         (["--rotation-range", "abc"], "argument --rotation-range: expected LOW,HIGH, got 'abc'"),
+        (
+            ["--compile", "nosuch"],
+            "--compile: 'nosuch' is not a torch.compile backend (torch.compiler.list_backends())",
+        ),
         (
             ["--rotation-range", "0,400"],
             "rotation_range must be [low, high] in degrees with 0 < high - low <= 360, got (0.0, 400.0)",
