@@ -226,6 +226,11 @@ def test_bad_freeze_is_refused(freeze, message):
             lambda t, s, p: {"template": t, "source": s, "pose": p.index_fill(0, torch.tensor([1]), float("nan"))},
             "finite",
         ),
+        (lambda t, s, p: {"template": t, "source": s, "pose": p.long()}, "pose must be floating point.*int64"),
+        (
+            lambda t, s, p: {"template": t, "source": s, "pose": p.index_fill(0, torch.tensor([2]), float("inf"))},
+            "row 2 is",
+        ),
         (lambda t, s, p: {"image": t, "source": s, "pose": p}, r"keys template, source, pose; got \['image'"),
         (lambda t, s, p: (t, s, p), "a dict with the keys template, source, pose; got tuple"),
     ],

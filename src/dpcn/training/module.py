@@ -92,10 +92,11 @@ def check_batch(batch: object, paired: bool) -> tuple[Tensor, Tensor, Tensor]:
         raise ValueError(
             f"a batch's pose must be ({sources}, 4) for its {sources} sources (x, y, angle, scale); got {shape}"
         )
-    if not pose.is_floating_point() or not torch.isfinite(pose).all():
-        raise ValueError(
-            f"a batch's pose must hold finite floating-point values; got {pose.dtype} with {pose.tolist()}"
-        )
+    if not pose.is_floating_point():
+        raise ValueError(f"a batch's pose must be floating point (x, y, angle, scale); got {pose.dtype}")
+    if not torch.isfinite(pose).all():
+        row = int((~torch.isfinite(pose)).any(dim=1).nonzero()[0])  # the first bad row, not all of them
+        raise ValueError(f"a batch's pose must hold finite numbers; row {row} is {pose[row].tolist()}")
     if paired and templates != sources:
         raise ValueError(
             f"a training batch pairs each template with one source; got {templates} templates and {sources} sources"
