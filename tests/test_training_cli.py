@@ -250,6 +250,43 @@ def test_a_stop_turns_the_loaders_sigchld_handler_off_first(stop):
             signal.signal(signum, handler)
 
 
+@pytest.mark.skipif(not hasattr(signal, "SIGCHLD"), reason="SIGCHLD is POSIX")
+def test_a_stop_handler_installed_later_still_turns_sigchld_off_first():
+    """Lightning installs its SIGTERM handler when the run starts, in front of the stop guard:
+    it logs the signal, then records it. A worker that died meanwhile raised inside it, the
+    stop unrecorded, and the stopped run ended as a crash (CI, once). The trainer's callback
+    wraps that handler again at each loop's start, so SIGCHLD goes off first."""
+    from dpcn.training.checkpointing import StopQuietsWorkersFirst
+
+    before = {s: signal.getsignal(s) for s in (signal.SIGTERM, signal.SIGINT, signal.SIGCHLD)}
+    recorded = []
+
+    def logs_then_records(signum, frame):  # Lightning's notifier, with a worker dying as it logs
+        _child_exits()
+        time.sleep(0.1)
+        recorded.append(signum)
+
+    try:
+        signal.signal(signal.SIGCHLD, _raise_like_the_loader)
+        signal.signal(signal.SIGTERM, logs_then_records)
+        with pytest.raises(_WorkerKilled):  # the race, without the callback
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(0.1)
+        assert recorded == []
+        callback = StopQuietsWorkersFirst()
+        callback.on_train_start(None, None)
+        wrapped = signal.getsignal(signal.SIGTERM)
+        callback.on_validation_start(None, None)  # each loop's start: wrapped once only
+        assert signal.getsignal(signal.SIGTERM) is wrapped is not logs_then_records
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(0.2)
+        assert recorded == [signal.SIGTERM]
+        assert signal.getsignal(signal.SIGCHLD) == signal.SIG_DFL
+    finally:
+        for signum, handler in before.items():
+            signal.signal(signum, handler)
+
+
 @pytest.mark.skipif(not hasattr(os, "killpg"), reason="process groups are POSIX")
 @STOP_SIGNALS
 def test_a_run_stopped_with_its_data_workers_keeps_its_place(tmp_path, signum, name, status):

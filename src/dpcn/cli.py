@@ -299,7 +299,7 @@ def _trainer(cfg: DictConfig, run_dir: Path, fit: bool):
     from lightning.pytorch.callbacks import LearningRateMonitor, ModelCheckpoint
     from lightning.pytorch.loggers import CSVLogger, TensorBoardLogger
 
-    from .training.checkpointing import AtomicCheckpointIO
+    from .training.checkpointing import AtomicCheckpointIO, StopQuietsWorkersFirst
 
     _check_trainer(cfg)
     # metrics.csv goes straight into the run directory, beside Hydra's files (hence the filter:
@@ -314,7 +314,7 @@ def _trainer(cfg: DictConfig, run_dir: Path, fit: bool):
     loggers = [CSVLogger(save_dir=str(run_dir), name="", version="")]
     if importlib.util.find_spec("tensorboard") is not None:
         loggers.append(TensorBoardLogger(save_dir=str(run_dir), name="", version="tb"))
-    callbacks = []
+    callbacks = [StopQuietsWorkersFirst()]  # a stop records itself before dying workers can raise
     if fit:
         ckpt_dir = run_dir / "checkpoints"
         every = cfg.checkpoint_every_n_steps

@@ -11,9 +11,10 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+from lightning.pytorch.callbacks import Callback
 from lightning.pytorch.plugins.io import TorchCheckpointIO
 
-__all__ = ["AtomicCheckpointIO", "stop_quiets_worker_deaths"]
+__all__ = ["AtomicCheckpointIO", "StopQuietsWorkersFirst", "stop_quiets_worker_deaths"]
 
 
 def _sigchld_settable() -> bool:
@@ -74,6 +75,50 @@ def stop_quiets_worker_deaths() -> Iterator[None]:
         for signum, handler in previous.items():
             if handler is not None:  # None: set from outside Python, cannot be restored from here
                 signal.signal(signum, handler)
+
+
+def _put_sigchld_off_first() -> None:
+    """Wrap the SIGTERM and SIGINT handlers now set (callable ones) so that each first turns
+    PyTorch's SIGCHLD handler off, then runs as before; already wrapped ones stay as they are."""
+    if not _sigchld_settable():
+        return
+    for signum in (signal.SIGTERM, signal.SIGINT):
+        handler = signal.getsignal(signum)
+        if not callable(handler) or getattr(handler, "_dpcn_sigchld_off", False):
+            continue  # SIG_DFL / SIG_IGN act in C: nothing of Python runs before them
+
+        def on_stop(number: int, frame: object, handler=handler) -> None:
+            signal.signal(signal.SIGCHLD, signal.SIG_DFL)
+            handler(number, frame)
+
+        on_stop._dpcn_sigchld_off = True  # type: ignore[attr-defined]
+        signal.signal(signum, on_stop)
+
+
+class StopQuietsWorkersFirst(Callback):
+    """Keeps :func:`stop_quiets_worker_deaths`'s switch-off of SIGCHLD the first thing a stop does.
+
+    Lightning installs its own SIGTERM handler when a run starts (after ``on_fit_start``), in
+    front of the handlers already set: it logs the signal, then records it
+    (``trainer.received_sigterm``). A data worker's SIGCHLD during that log raised "DataLoader
+    worker ... is killed" with the stop not yet recorded, and a stopped run ended as a crash
+    (once in CI). At the start of each loop, after Lightning's handlers are in, this wraps them
+    so that SIGCHLD goes off first. Main thread, POSIX; a no-op elsewhere."""
+
+    def on_sanity_check_start(self, trainer: Any, pl_module: Any) -> None:
+        _put_sigchld_off_first()
+
+    def on_train_start(self, trainer: Any, pl_module: Any) -> None:
+        _put_sigchld_off_first()
+
+    def on_validation_start(self, trainer: Any, pl_module: Any) -> None:
+        _put_sigchld_off_first()
+
+    def on_test_start(self, trainer: Any, pl_module: Any) -> None:
+        _put_sigchld_off_first()
+
+    def on_predict_start(self, trainer: Any, pl_module: Any) -> None:
+        _put_sigchld_off_first()
 
 
 class AtomicCheckpointIO(TorchCheckpointIO):
