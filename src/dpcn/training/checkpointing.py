@@ -7,7 +7,7 @@ import contextlib
 import os
 import signal
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -42,6 +42,22 @@ def _sigchld_ignored() -> Iterator[None]:
         signal.signal(signal.SIGCHLD, previous)
 
 
+_STOPS = (signal.SIGTERM, signal.SIGINT)
+
+
+def _sigchld_off_then(handler: object) -> Callable[[int, object], None]:
+    """A stop handler that turns PyTorch's SIGCHLD handler off, then runs ``handler`` if it is
+    Python's (e.g. KeyboardInterrupt for Ctrl-C; a SIGTERM is Lightning's to handle)."""
+
+    def on_stop(signum: int, frame: object) -> None:
+        signal.signal(signal.SIGCHLD, signal.SIG_DFL)
+        if callable(handler):
+            handler(signum, frame)
+
+    on_stop._dpcn_sigchld_off = True  # type: ignore[attr-defined]
+    return on_stop
+
+
 @contextlib.contextmanager
 def stop_quiets_worker_deaths() -> Iterator[None]:
     """For the duration: a SIGTERM or Ctrl-C reaching this process first turns PyTorch's SIGCHLD
@@ -58,17 +74,9 @@ def stop_quiets_worker_deaths() -> Iterator[None]:
     if not _sigchld_settable():
         yield
         return
-    stops = (signal.SIGTERM, signal.SIGINT)
-    previous = {signum: signal.getsignal(signum) for signum in stops}
-
-    def on_stop(signum: int, frame: object) -> None:
-        signal.signal(signal.SIGCHLD, signal.SIG_DFL)
-        handler = previous[signum]
-        if callable(handler):  # e.g. KeyboardInterrupt for Ctrl-C; SIGTERM is Lightning's to handle
-            handler(signum, frame)
-
-    for signum in stops:
-        signal.signal(signum, on_stop)
+    previous = {signum: signal.getsignal(signum) for signum in _STOPS}
+    for signum, handler in previous.items():
+        signal.signal(signum, _sigchld_off_then(handler))
     try:
         yield
     finally:  # SIGCHLD stays as it is: the loader's handler, or off after a stop that ends the run
@@ -82,17 +90,10 @@ def _put_sigchld_off_first() -> None:
     PyTorch's SIGCHLD handler off, then runs as before; already wrapped ones stay as they are."""
     if not _sigchld_settable():
         return
-    for signum in (signal.SIGTERM, signal.SIGINT):
+    for signum in _STOPS:
         handler = signal.getsignal(signum)
-        if not callable(handler) or getattr(handler, "_dpcn_sigchld_off", False):
-            continue  # SIG_DFL / SIG_IGN act in C: nothing of Python runs before them
-
-        def on_stop(number: int, frame: object, handler=handler) -> None:
-            signal.signal(signal.SIGCHLD, signal.SIG_DFL)
-            handler(number, frame)
-
-        on_stop._dpcn_sigchld_off = True  # type: ignore[attr-defined]
-        signal.signal(signum, on_stop)
+        if callable(handler) and not getattr(handler, "_dpcn_sigchld_off", False):
+            signal.signal(signum, _sigchld_off_then(handler))  # SIG_DFL / SIG_IGN act in C: left so
 
 
 class StopQuietsWorkersFirst(Callback):
