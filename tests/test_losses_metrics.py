@@ -9,7 +9,16 @@ from hydra.utils import instantiate
 from torch.autograd import gradcheck
 
 from dpcn.estimator import estimate_rotation_scale, estimate_translation, unwarp_rotation_scale
-from dpcn.metrics import format_table, pose_errors, summarize, thresholds_for, write_csv
+from dpcn.metrics import (
+    CURVE_THRESHOLDS,
+    accuracy_curve,
+    format_table,
+    pose_errors,
+    summarize,
+    thresholds_for,
+    write_csv,
+    write_curve_csv,
+)
 from dpcn.ops.logpolar import log_radius_step
 from dpcn.training.losses import (
     DPCNLoss,
@@ -122,6 +131,42 @@ def test_summarize_matches_hand_counts(tmp_path):
     assert header.startswith("name,acc_x@5") and row.startswith("dpcn,")
     assert math.isclose(float(row.split(",")[1]), 200 / 3)
     assert np.isclose(summarize(errors, thresholds_for(10.0))["acc_x@10"], 100.0)
+
+
+def test_accuracy_curve_counts_the_pairs_within_each_threshold(tmp_path):
+    rng = np.random.default_rng(0)
+    errors = np.abs(rng.normal(0.0, [6.0, 6.0, 0.8, 0.08], size=(200, 4)))
+    errors[0] = [5.0, 0.0, 1.0, 0.2]  # on the thresholds: within, as in the tables
+    curve = accuracy_curve(torch.from_numpy(errors))
+    assert [(name, t) for name, t, _ in curve] == [
+        (name, t) for name in CURVE_THRESHOLDS for t in CURVE_THRESHOLDS[name]
+    ]
+    assert len(CURVE_THRESHOLDS["x"]) == 20 and CURVE_THRESHOLDS["x"][-1] == 19.0  # the paper's Acc at 0-19 px
+    for name, limit, acc in curve:
+        column = errors[:, ["x", "y", "rot", "scale"].index(name)]
+        assert acc == pytest.approx(100.0 * np.count_nonzero(column <= limit) / 200)
+    # Every table threshold lies on the curves, with the table's number.
+    table = summarize(
+        torch.from_numpy(errors), {**thresholds_for(5.0), "aero": {"x": 10, "y": 10, "rot": 1, "scale": 0.2}}
+    )
+    on_curve = {f"acc_{name}@{limit:g}": acc for name, limit, acc in curve}
+    for key, value in table.items():
+        if key.startswith("acc_"):
+            assert on_curve[key] == pytest.approx(value), key
+    path = write_curve_csv(tmp_path / "curves" / "accuracy_test.csv", curve)
+    rows = path.read_text().strip().splitlines()
+    assert rows[0] == "component,threshold,acc" and len(rows) == 1 + len(curve)
+    assert rows[1 + 5].startswith("x,5,") and float(rows[1 + 5].split(",")[2]) == pytest.approx(
+        on_curve["acc_x@5"], abs=1e-4
+    )
+    mine = accuracy_curve(torch.from_numpy(errors), {"rot": [0.25, 3.0]})
+    assert [t for _, t, _ in mine] == [0.25, 3.0]
+    with pytest.raises(ValueError, match=r"errors must be \(N, 4\) with N >= 1, got \(3, 3\)"):
+        accuracy_curve(torch.zeros(3, 3))
+    with pytest.raises(ValueError, match=r"errors must be \(N, 4\) with N >= 1, got \(0, 4\)"):
+        accuracy_curve(torch.zeros(0, 4))
+    with pytest.raises(ValueError, match=r"unknown components \['angle'\]"):
+        accuracy_curve(torch.zeros(2, 4), {"angle": [1.0]})
 
 
 @pytest.mark.parametrize(

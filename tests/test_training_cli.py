@@ -502,6 +502,13 @@ def test_validate_and_test_print_the_paper_table(trained, tmp_path):
     first = pairs[0]
     assert float(first["err_x"]) == pytest.approx(abs(float(first["pred_tx"]) - float(first["tx"])), abs=1e-4)
     assert 0 < float(first["confidence"]) <= 1
+    # Accuracy against threshold, the paper's appendix plots, from the same pairs.
+    with (tmp_path / "v" / "accuracy_validate.csv").open() as f:
+        curve = {(row["component"], float(row["threshold"])): float(row["acc"]) for row in csv.DictReader(f)}
+    assert len(curve) == 82 and curve[("x", 19.0)] >= curve[("x", 5.0)] >= curve[("x", 0.0)]
+    for (name, limit), acc in curve.items():
+        column = {"x": "err_x", "y": "err_y", "rot": "err_rot", "scale": "err_scale"}[name]
+        assert acc == pytest.approx(100 * sum(float(p[column]) <= limit for p in pairs) / 4, abs=1e-3)
     # Lightning's adverts and its warning about its own code stay out of the output.
     assert "Tip:" not in out.stderr + out.stdout and "LeafSpec" not in out.stderr, out.stderr
 

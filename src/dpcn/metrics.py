@@ -15,11 +15,14 @@ from torch import Tensor
 
 __all__ = [
     "COMPONENTS",
+    "CURVE_THRESHOLDS",
     "PAIR_COLUMNS",
+    "accuracy_curve",
     "pose_errors",
     "summarize",
     "format_table",
     "write_csv",
+    "write_curve_csv",
     "write_pairs_csv",
     "thresholds_for",
 ]
@@ -30,6 +33,16 @@ PAIR_COLUMNS = (
     "pair", "tx", "ty", "angle", "scale", "pred_tx", "pred_ty", "pred_angle", "pred_scale",
     "confidence", "err_x", "err_y", "err_rot", "err_scale",
 )  # fmt: skip
+
+
+# Thresholds of the accuracy curves (the paper's appendix plots Acc at 0 to 19 px): every table
+# threshold of both data kinds lies on them (x, y 1, 5, 10 px; rotation 0.5, 1 deg; scale 0.02, 0.2).
+CURVE_THRESHOLDS: dict[str, tuple[float, ...]] = {
+    "x": tuple(float(t) for t in range(20)),
+    "y": tuple(float(t) for t in range(20)),
+    "rot": tuple(round(0.1 * t, 1) for t in range(21)),
+    "scale": tuple(round(0.01 * t, 2) for t in range(21)),
+}
 
 
 def thresholds_for(translation_px: float = 5.0) -> dict[str, dict[str, float]]:
@@ -59,6 +72,25 @@ def summarize(errors: Tensor, thresholds: Mapping[str, Mapping[str, float]]) -> 
     return out
 
 
+def accuracy_curve(
+    errors: Tensor, thresholds: Mapping[str, Sequence[float]] = CURVE_THRESHOLDS
+) -> list[tuple[str, float, float]]:
+    """Accuracy against threshold, the paper's appendix plots: ``(component, threshold, Acc
+    in %)`` rows for ``(N, 4)`` :func:`pose_errors`, per component of ``thresholds`` (pixels,
+    degrees, absolute scale) in their order; an error equal to the threshold counts as within."""
+    if errors.ndim != 2 or errors.shape[1] != len(COMPONENTS) or errors.shape[0] == 0:
+        raise ValueError(f"errors must be (N, 4) with N >= 1, got {tuple(errors.shape)}")
+    unknown = set(thresholds) - set(COMPONENTS)
+    if unknown:
+        raise ValueError(f"unknown components {sorted(unknown)}; expected some of {list(COMPONENTS)}")
+    rows = []
+    for name, limits in thresholds.items():
+        column = errors[:, COMPONENTS.index(name)]
+        for limit in limits:
+            rows.append((name, float(limit), 100.0 * float((column <= limit).double().mean())))
+    return rows
+
+
 def format_table(rows: Sequence[tuple[str, Mapping[str, float]]]) -> str:
     """Plain-text table, one row per method/data set, columns as in the paper's tables."""
     if not rows:
@@ -84,6 +116,17 @@ def write_csv(path: str | Path, rows: Sequence[tuple[str, Mapping[str, float]]])
         writer.writerow(["name", *keys])
         for name, metrics in rows:
             writer.writerow([name, *(metrics[k] for k in keys)])
+    return path
+
+
+def write_curve_csv(path: str | Path, curve: Sequence[tuple[str, float, float]]) -> Path:
+    """:func:`accuracy_curve` rows as a CSV of ``component, threshold, acc``."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with path.open("w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(["component", "threshold", "acc"])
+        writer.writerows((name, f"{limit:g}", f"{acc:.4f}") for name, limit, acc in curve)
     return path
 
 

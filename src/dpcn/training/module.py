@@ -20,7 +20,16 @@ from torch import Tensor
 from .._validate import check_bool, check_int, check_number
 from ..estimator import PhaseCorrelationEstimator, estimate_translation, unwarp_rotation_scale
 from ..io import prepare_pair
-from ..metrics import format_table, pose_errors, summarize, thresholds_for, write_csv, write_pairs_csv
+from ..metrics import (
+    accuracy_curve,
+    format_table,
+    pose_errors,
+    summarize,
+    thresholds_for,
+    write_csv,
+    write_curve_csv,
+    write_pairs_csv,
+)
 from ..models.dpcn import DPCN, PHASE_UNETS
 from ..ops._checks import inputs_checked
 from ..pose import Pose, wrap_angle
@@ -156,7 +165,8 @@ class _EvaluationMixin:
     def report(self, stage: str, name: str, out_dir: str | Path | None, pair_names: Sequence[str] | None = None) -> str:
         """Table of the last metrics; also written as ``metrics_<stage>.csv`` in ``out_dir``,
         beside ``pairs_<stage>.csv``, every pair's truth, estimate, confidence and errors (and
-        its name, given ``pair_names`` in data-set order)."""
+        its name, given ``pair_names`` in data-set order), and ``accuracy_<stage>.csv``, the
+        accuracy against threshold of each component (:func:`~dpcn.metrics.accuracy_curve`)."""
         if not getattr(self, "last_metrics", None):
             return ""
         rows = [(name, self.last_metrics)]
@@ -166,6 +176,8 @@ class _EvaluationMixin:
             confidence = None if torch.isnan(records[:, 8]).all() else records[:, 8]
             pairs = Path(out_dir) / f"pairs_{stage}.csv"
             write_pairs_csv(pairs, records[:, :4], records[:, 4:8], confidence, pair_names)
+            errors = pose_errors(records[:, 4:8], records[:, :4])
+            write_curve_csv(Path(out_dir) / f"accuracy_{stage}.csv", accuracy_curve(errors))
         return format_table(rows)
 
 
