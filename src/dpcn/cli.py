@@ -518,7 +518,10 @@ def _run_evaluation(cfg: DictConfig, stage: str) -> None:
         rows = getattr(dataset, "rows", None)  # pre-cut CSV pairs have names
         names = [row["name"] for row in rows] if rows else None
         print(module.report(stage, f"{name} on {datamodule.name}", run_dir, names))
-        print(f"metrics written to {run_dir / f'metrics_{stage}.csv'} (every pair: pairs_{stage}.csv)")
+        print(
+            f"metrics written to {run_dir / f'metrics_{stage}.csv'} "
+            f"(every pair: pairs_{stage}.csv; accuracy against threshold: accuracy_{stage}.csv)"
+        )
 
 
 def run_make_data(cfg: DictConfig) -> None:
