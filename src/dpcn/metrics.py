@@ -7,6 +7,7 @@ Errors are per pair: ``|dx|``, ``|dy|`` in pixels, the rotation error in degrees
 from __future__ import annotations
 
 import csv
+import math
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
@@ -76,8 +77,10 @@ def accuracy_curve(
     errors: Tensor, thresholds: Mapping[str, Sequence[float]] = CURVE_THRESHOLDS
 ) -> list[tuple[str, float, float]]:
     """Accuracy against threshold, the paper's appendix plots: ``(component, threshold, Acc
-    in %)`` rows for ``(N, 4)`` :func:`pose_errors`, per component of ``thresholds`` (pixels,
-    degrees, absolute scale) in their order; an error equal to the threshold counts as within."""
+    in %)`` rows for ``(N, 4)`` :func:`pose_errors` (a tensor or an array), per component of ``thresholds`` (pixels,
+    degrees, absolute scale) in their order; an error equal to the threshold counts as within.
+    A NaN error (a failed estimate) counts as outside every threshold."""
+    errors = torch.as_tensor(errors)
     if errors.ndim != 2 or errors.shape[1] != len(COMPONENTS) or errors.shape[0] == 0:
         raise ValueError(f"errors must be (N, 4) with N >= 1, got {tuple(errors.shape)}")
     unknown = set(thresholds) - set(COMPONENTS)
@@ -85,6 +88,9 @@ def accuracy_curve(
         raise ValueError(f"unknown components {sorted(unknown)}; expected some of {list(COMPONENTS)}")
     rows = []
     for name, limits in thresholds.items():
+        limits = [float(limit) for limit in limits]
+        if not all(math.isfinite(limit) and limit >= 0 for limit in limits):
+            raise ValueError(f"thresholds of {name} must be finite numbers >= 0, got {limits}")
         column = errors[:, COMPONENTS.index(name)]
         for limit in limits:
             rows.append((name, float(limit), 100.0 * float((column <= limit).double().mean())))
