@@ -1,6 +1,7 @@
 """Losses (against the classical estimator's own surfaces) and the paper's metrics."""
 
 import math
+import re
 
 import numpy as np
 import pytest
@@ -167,10 +168,17 @@ def test_accuracy_curve_counts_the_pairs_within_each_threshold(tmp_path):
         accuracy_curve(torch.zeros(0, 4))
     with pytest.raises(ValueError, match=r"unknown components \['angle'\]"):
         accuracy_curve(torch.zeros(2, 4), {"angle": [1.0]})
-    with pytest.raises(ValueError, match=r"thresholds of rot must be finite numbers >= 0, got \[1.0, nan\]"):
-        accuracy_curve(torch.zeros(2, 4), {"rot": [1.0, float("nan")]})
-    with pytest.raises(ValueError, match=r"thresholds of x must be finite numbers >= 0, got \[-1.0\]"):
-        accuracy_curve(torch.zeros(2, 4), {"x": [-1]})
+    for limits, shown in [
+        ([1.0, float("nan")], "[1.0, nan]"),
+        ([-1], "[-1]"),
+        (["a"], "['a']"),
+        (3, "3"),
+        ("12", "'12'"),
+    ]:
+        with pytest.raises(
+            ValueError, match=f"thresholds of rot must be a list of finite numbers >= 0, got {re.escape(shown)}$"
+        ):
+            accuracy_curve(torch.zeros(2, 4), {"rot": limits})
     # numpy errors too; a failed (NaN) estimate is outside every threshold
     failed = np.array([[0.5, 0.5, 0.1, 0.01], [np.nan, np.nan, np.nan, np.nan]])
     assert [acc for _, _, acc in accuracy_curve(failed, {"x": [1.0, 1e9], "scale": [0.02]})] == [50.0, 50.0, 50.0]

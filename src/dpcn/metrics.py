@@ -88,9 +88,13 @@ def accuracy_curve(
         raise ValueError(f"unknown components {sorted(unknown)}; expected some of {list(COMPONENTS)}")
     rows = []
     for name, limits in thresholds.items():
-        limits = [float(limit) for limit in limits]
-        if not all(math.isfinite(limit) and limit >= 0 for limit in limits):
-            raise ValueError(f"thresholds of {name} must be finite numbers >= 0, got {limits}")
+        try:
+            values = None if isinstance(limits, str) else [float(limit) for limit in limits]
+        except (TypeError, ValueError):
+            values = None
+        if values is None or not all(math.isfinite(v) and v >= 0 for v in values):
+            raise ValueError(f"thresholds of {name} must be a list of finite numbers >= 0, got {limits!r}")
+        limits = values
         column = errors[:, COMPONENTS.index(name)]
         for limit in limits:
             rows.append((name, float(limit), 100.0 * float((column <= limit).double().mean())))
