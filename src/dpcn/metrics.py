@@ -62,12 +62,17 @@ def pose_errors(prediction: Tensor, truth: Tensor) -> Tensor:
     return err
 
 
+def _percent_within(errors: Tensor, limit: float) -> float:
+    """Acc in % of one component's errors: within means ``<= limit`` (NaN: outside)."""
+    return 100.0 * float((errors <= limit).double().mean())
+
+
 def summarize(errors: Tensor, thresholds: Mapping[str, Mapping[str, float]]) -> dict[str, float]:
     """``{"acc_x@5": %, ..., "mse_x": ...}`` for ``(N, 4)`` errors."""
     out: dict[str, float] = {}
     for i, name in enumerate(COMPONENTS):
         for limit in sorted({t[name] for t in thresholds.values()}, reverse=True):
-            out[f"acc_{name}@{limit:g}"] = 100.0 * float((errors[:, i] <= limit).double().mean())
+            out[f"acc_{name}@{limit:g}"] = _percent_within(errors[:, i], limit)
         out[f"mse_{name}"] = float((errors[:, i] ** 2).mean())
     out["n"] = float(errors.shape[0])
     return out
@@ -94,10 +99,8 @@ def accuracy_curve(
             values = None
         if values is None or not all(math.isfinite(v) and v >= 0 for v in values):
             raise ValueError(f"thresholds of {name} must be a list of finite numbers >= 0, got {limits!r}")
-        limits = values
         column = errors[:, COMPONENTS.index(name)]
-        for limit in limits:
-            rows.append((name, float(limit), 100.0 * float((column <= limit).double().mean())))
+        rows.extend((name, limit, _percent_within(column, limit)) for limit in values)
     return rows
 
 

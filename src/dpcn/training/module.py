@@ -158,7 +158,7 @@ class _EvaluationMixin:
             if key != "n":
                 self.log(f"{stage}/{key}", value, sync_dist=False, rank_zero_only=True)
         self.last_metrics = metrics
-        self.last_records = records
+        self.last_records, self.last_errors = records, errors
         self._reset()
         return metrics
 
@@ -176,8 +176,7 @@ class _EvaluationMixin:
             confidence = None if torch.isnan(records[:, 8]).all() else records[:, 8]
             pairs = Path(out_dir) / f"pairs_{stage}.csv"
             write_pairs_csv(pairs, records[:, :4], records[:, 4:8], confidence, pair_names)
-            errors = pose_errors(records[:, 4:8], records[:, :4])
-            write_curve_csv(Path(out_dir) / f"accuracy_{stage}.csv", accuracy_curve(errors))
+            write_curve_csv(Path(out_dir) / f"accuracy_{stage}.csv", accuracy_curve(self.last_errors))
         return format_table(rows)
 
 
