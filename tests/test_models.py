@@ -419,6 +419,21 @@ def test_gradcheck_local_texture():
     assert gradcheck(lambda x: local_texture(x, sigma=1.0, window=1.5), (image,))
 
 
+def test_relief_and_texture_keep_float32_under_bfloat16_autocast():
+    # bf16-mixed training runs the U-Nets' inputs under autocast; the relief's gain and the
+    # grain's few hundredths would amplify or drown bfloat16's rounding of a 0-1 image (~0.004).
+    image = torch.from_numpy(photo("camera", (64, 80))).float()[None, None]
+    expected = (local_relief(image, 100.0), local_texture(image))
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        got = (local_relief(image, 100.0), local_texture(image))
+    for a, b in zip(got, expected, strict=True):
+        assert a.dtype == torch.float32
+        torch.testing.assert_close(a, b)
+    low = local_texture(image.bfloat16())  # a low-precision input is computed and returned in float32
+    assert low.dtype == torch.float32
+    torch.testing.assert_close(low, local_texture(image.bfloat16().float()))
+
+
 @pytest.mark.parametrize("side", ["template", "both"])
 @pytest.mark.parametrize("relief", [None, 100.0])
 def test_texture_energy_adds_a_phase1_input_channel_per_image_channel(side, relief):

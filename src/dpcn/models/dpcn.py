@@ -49,7 +49,7 @@ from ..estimator import (
     unwarp_rotation_scale,
     window_grid_shifts,
 )
-from ..ops._checks import check_pair, copies_of_one, inputs_checked
+from ..ops._checks import check_pair, copies_of_one, full_precision, inputs_checked
 from ..ops.logpolar import log_polar_grid, log_radius_step
 from ..pose import Pose, wrap_angle
 from .unet import UNet
@@ -79,6 +79,7 @@ def half_turn(image: Tensor) -> Tensor:
     return torch.roll(torch.flip(image, dims=(-2, -1)), shifts=(1, 1), dims=(-2, -1))
 
 
+@full_precision  # under bf16 autocast the blur's rounding (~0.004 on 0-1 images) would pass the gain
 def local_relief(image: Tensor, gain: float, sigma: float = 4.0) -> Tensor:
     """Local relief with a compressed range: ``asinh(gain * (x - G * x)) / asinh(gain)``.
 
@@ -94,7 +95,8 @@ def local_relief(image: Tensor, gain: float, sigma: float = 4.0) -> Tensor:
         sigma: the blur's standard deviation in pixels.
 
     Returns:
-        ``(B, C, H, W)``, same dtype and device, in ``(-1, 1)`` for inputs in ``[0, 1]``.
+        ``(B, C, H, W)``, same device, in ``(-1, 1)`` for inputs in ``[0, 1]``; computed in
+        float32, outside autocast, and float32 for float16/bfloat16 inputs.
     """
     return torch.asinh(gain * (image - _gaussian_blur(image, sigma))) / math.asinh(gain)
 
@@ -105,6 +107,7 @@ def _gaussian_blur(image: Tensor, sigma: float) -> Tensor:
     return kornia.filters.gaussian_blur2d(image, (2 * radius + 1,) * 2, (sigma, sigma), border_type="reflect")
 
 
+@full_precision  # grain of 0.01-0.1 is a few bfloat16 steps of a 0-1 image
 def local_texture(image: Tensor, sigma: float = 2.0, window: float = 3.0, gain: float = 10.0) -> Tensor:
     """Local texture energy: ``gain * sqrt(G_w * (x - G_s * x)^2 + 1e-6)``, per channel.
 
@@ -119,7 +122,8 @@ def local_texture(image: Tensor, sigma: float = 2.0, window: float = 3.0, gain: 
         gain: a scale; grain of standard deviation 0.01-0.1 in ``[0, 1]`` images gives about 0.1-1.
 
     Returns:
-        ``(B, C, H, W)``, same dtype and device, non-negative.
+        ``(B, C, H, W)``, same device, non-negative; computed in float32, outside autocast,
+        and float32 for float16/bfloat16 inputs.
     """
     detail = image - _gaussian_blur(image, sigma)
     return gain * torch.sqrt(_gaussian_blur(detail * detail, window) + 1e-6)
