@@ -95,8 +95,8 @@ def local_relief(image: Tensor, gain: float, sigma: float = 4.0) -> Tensor:
         sigma: the blur's standard deviation in pixels.
 
     Returns:
-        ``(B, C, H, W)``, same device, in ``(-1, 1)`` for inputs in ``[0, 1]``; computed in
-        float32, outside autocast, and float32 for float16/bfloat16 inputs.
+        ``(B, C, H, W)``, same device, in ``(-1, 1)`` for inputs in ``[0, 1]``; computed
+        outside autocast, in float32 for float16/bfloat16 inputs (and returned so).
     """
     return torch.asinh(gain * (image - _gaussian_blur(image, sigma))) / math.asinh(gain)
 
@@ -122,8 +122,8 @@ def local_texture(image: Tensor, sigma: float = 2.0, window: float = 3.0, gain: 
         gain: a scale; grain of standard deviation 0.01-0.1 in ``[0, 1]`` images gives about 0.1-1.
 
     Returns:
-        ``(B, C, H, W)``, same device, non-negative; computed in float32, outside autocast,
-        and float32 for float16/bfloat16 inputs.
+        ``(B, C, H, W)``, same device, non-negative; computed outside autocast, in float32
+        for float16/bfloat16 inputs (and returned so).
     """
     detail = image - _gaussian_blur(image, sigma)
     return gain * torch.sqrt(_gaussian_blur(detail * detail, window) + 1e-6)
