@@ -587,6 +587,7 @@ def test_predict_with_a_checkpoint(trained, tmp_path):
         (["fit", "model.net.sigma=abc"], "model.net.sigma must be a finite number >= 0, got 'abc'"),
         (["fit", "trainer.max_epochs=abc"], "trainer.max_epochs must be an integer >= -1, got 'abc'"),
         (["fit", "+data.dataset.bogus=1"], "data.dataset: SimulatedPairs.__init__() got an unexpected keyword"),
+        (["fit", "+data.split_kwargs={train:{obstacles:-1}}"], "data.dataset with data.split_kwargs.train: obstacles"),
         (["fit", "ema_decay=1"], "ema_decay must be a number in (0, 1) or null, got 1"),
         (["fit", "ema_decay=abc"], "ema_decay must be a number in (0, 1) or null, got 'abc'"),
         (["fit", "init_from=missing.ckpt"], "init_from: checkpoint not found: missing.ckpt"),

@@ -145,7 +145,8 @@ class PairDataModule(L.LightningDataModule):
                 if type(error) not in (ValueError, TypeError):
                     raise  # data errors (DataError, DpcnInputError) already name their file or row
                 # A bad `data.dataset.*` value: the constructor's message names the argument only.
-                raise type(error)(f"data.dataset: {error}") from error
+                where = f"data.dataset with data.split_kwargs.{split}" if kwargs else "data.dataset"
+                raise type(error)(f"{where}: {error}") from error
         return self.datasets[split]
 
     def setup(self, stage: str | None = None) -> None:
