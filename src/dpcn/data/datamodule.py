@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Mapping
 from typing import Any
 
 import lightning as L
@@ -82,6 +82,17 @@ class ResumableDataLoader(DataLoader):
         self.sampler.skip = (int(state["epoch"]), int(state["batches"]) * self.batch_size)
 
 
+SPLITS = ("train", "val", "test")
+
+
+def _check_splits(name: str, per_split: Mapping[str, Any] | None) -> None:
+    """A per-split setting names only train, val and test: a misspelt split would be ignored."""
+    unknown = sorted(set(per_split or {}) - set(SPLITS))
+    if unknown:
+        names = ", ".join(map(repr, unknown))
+        raise ValueError(f"data.{name} has unknown split(s) {names}; the splits are {', '.join(SPLITS)}")
+
+
 class PairDataModule(L.LightningDataModule):
     """Builds train/val/test sets from one data set factory with different seeds and sizes.
 
@@ -125,6 +136,11 @@ class PairDataModule(L.LightningDataModule):
             ("num_workers", num_workers, 0),
         )
         check_number("data.translation_threshold", translation_threshold, low=0.0, low_open=True)
+        _check_splits("seeds", seeds)
+        _check_splits("split_kwargs", split_kwargs)
+        for split, kwargs in (split_kwargs or {}).items():
+            if not isinstance(kwargs, Mapping):
+                raise ValueError(f"data.split_kwargs.{split} must be a mapping of data set arguments, got {kwargs!r}")
         self.factory = dataset
         self.lengths = {"train": train_length, "val": val_length, "test": test_length}
         self.seeds = {"train": 0, "val": 1, "test": 2, **(seeds or {})}
