@@ -144,6 +144,7 @@ class PairDataModule(L.LightningDataModule):
         self.factory = dataset
         self.lengths = {"train": train_length, "val": val_length, "test": test_length}
         self.seeds = {"train": 0, "val": 1, "test": 2, **(seeds or {})}
+        check_ints("data.seeds.", *((split, seed, 0) for split, seed in self.seeds.items()))
         self.split_kwargs = split_kwargs or {}
         self.epoch_size = epoch_size
         self.batch_size, self.num_workers = batch_size, num_workers
