@@ -592,6 +592,7 @@ def test_predict_with_a_checkpoint(trained, tmp_path):
         (["fit", "+data.split_kwargs={train:6}"], "data.split_kwargs.train must be a mapping of data set"),
         (["fit", "+data.seeds.tset=3"], "data.seeds has unknown split(s) 'tset'; the splits are train, val, test"),
         (["fit", "data.seeds.test=abc"], "data.seeds.test must be an integer >= 0, got 'abc'"),
+        (["fit", "data.seeds=5"], "data.seeds must map splits (train, val, test) to values, got 5"),
         (["fit", "ema_decay=1"], "ema_decay must be a number in (0, 1) or null, got 1"),
         (["fit", "ema_decay=abc"], "ema_decay must be a number in (0, 1) or null, got 'abc'"),
         (["fit", "init_from=missing.ckpt"], "init_from: checkpoint not found: missing.ckpt"),

@@ -87,6 +87,8 @@ SPLITS = ("train", "val", "test")
 
 def _check_splits(name: str, per_split: Mapping[str, Any] | None) -> None:
     """A per-split setting names only train, val and test: a misspelt split would be ignored."""
+    if per_split is not None and not isinstance(per_split, Mapping):
+        raise ValueError(f"data.{name} must map splits ({', '.join(SPLITS)}) to values, got {per_split!r}")
     unknown = sorted(set(per_split or {}) - set(SPLITS))
     if unknown:
         names = ", ".join(map(repr, unknown))
