@@ -587,7 +587,7 @@ def test_predict_with_a_checkpoint(trained, tmp_path):
         (["fit", "model.net.sigma=abc"], "model.net.sigma must be a finite number >= 0, got 'abc'"),
         (["fit", "trainer.max_epochs=abc"], "trainer.max_epochs must be an integer >= -1, got 'abc'"),
         (["fit", "+data.dataset.bogus=1"], "data.dataset: SimulatedPairs.__init__() got an unexpected keyword"),
-        (["fit", "+data.split_kwargs={train:{obstacles:-1}}"], "data.dataset with data.split_kwargs.train: obstacles"),
+        (["fit", "+data.split_kwargs={train:{obstacles:-1}}"], "data.split_kwargs.train: obstacles must be an integer"),
         (["fit", "+data.split_kwargs={trian:{obstacles:6}}"], "data.split_kwargs has unknown split(s) 'trian'; the"),
         (["fit", "+data.split_kwargs={train:6}"], "data.split_kwargs.train must be a mapping of data set"),
         (["fit", "+data.seeds.tset=3"], "data.seeds has unknown split(s) 'tset'; the splits are train, val, test"),

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 from collections.abc import Callable, Iterator, Mapping
 from typing import Any
 
@@ -163,8 +164,10 @@ class PairDataModule(L.LightningDataModule):
             except (ValueError, TypeError) as error:
                 if type(error) not in (ValueError, TypeError):
                     raise  # data errors (DataError, DpcnInputError) already name their file or row
-                # A bad `data.dataset.*` value: the constructor's message names the argument only.
-                where = f"data.dataset with data.split_kwargs.{split}" if kwargs else "data.dataset"
+                # A bad value: the constructor's message names the argument only, so say where it was
+                # set (data.split_kwargs.<split> when the argument is one of the split's own).
+                named = [key for key in kwargs if re.search(rf"\b{re.escape(str(key))}\b", str(error))]
+                where = f"data.split_kwargs.{split}" if named else "data.dataset"
                 raise type(error)(f"{where}: {error}") from error
         return self.datasets[split]
 
