@@ -577,6 +577,9 @@ def test_predict_with_a_checkpoint(trained, tmp_path):
     [
         (["test", "ckpt_path=missing.ckpt"], "checkpoint not found: missing.ckpt"),
         (["test", "ckpt_path=corrupt.ckpt"], "corrupt or not a torch file"),
+        (["test", "ckpt_path=."], ". is a folder, not a checkpoint file; it holds corrupt.ckpt, foreign.ckpt"),
+        (["fit", "init_from=run"], "init_from: run is a folder, not a checkpoint file; it holds run/checkpoints/last"),
+        (["test", "ckpt_path=run/checkpoints/empty"], "it holds no .ckpt file (nor does a checkpoints/ folder in it)"),
         (["test", "ckpt_path=foreign.ckpt"], "not a Lightning checkpoint of a dpcn model"),
         (["test"], "needs ckpt_path=PATH"),
         (["fit", "model=classical"], "nothing to train"),
@@ -617,6 +620,8 @@ def test_bad_runs_fail_in_one_line(tmp_path, args, message):
         pytest.skip("this machine has a GPU to train on")
     (tmp_path / "corrupt.ckpt").write_bytes(b"\x00\x01 not a checkpoint")
     torch.save({"weights": torch.zeros(3)}, tmp_path / "foreign.ckpt")
+    (tmp_path / "run" / "checkpoints" / "empty").mkdir(parents=True)  # a run's folder given for its checkpoint
+    (tmp_path / "run" / "checkpoints" / "last.ckpt").write_bytes(b"\x00")
     small = SMALL_DATA if "model=classical" in args else SMALL
     out = dpcn(*args[:1], *small, *args[1:], f"hydra.run.dir={tmp_path / 'r'}", cwd=tmp_path, check=False)
     assert out.returncode == 2, out.stderr[-2000:]

@@ -201,12 +201,9 @@ def _run_dir() -> Path:
 def _check_ckpt(path: str | None) -> Path | None:
     if not path:
         return None
-    from .training.module import CheckpointError
+    from .training.module import checkpoint_file
 
-    p = Path(path)
-    if not p.is_file():
-        raise CheckpointError(f"checkpoint not found: {p}")
-    return p
+    return checkpoint_file(path)
 
 
 # Trainer settings checked here: Lightning rejects a string with a bare assertion.

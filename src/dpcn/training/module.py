@@ -506,14 +506,29 @@ def _first_sentence(error: Exception) -> str:
     return text.split(". ")[0].rstrip(".")[:160]
 
 
+def checkpoint_file(path: str | Path) -> Path:
+    """``path`` as a :class:`Path` if it is a file; :class:`CheckpointError` if it does not
+    exist, or if it is a folder (a run's folder or its ``checkpoints/``), naming the
+    checkpoints inside it."""
+    path = Path(path)
+    if path.is_file():
+        return path
+    if not path.is_dir():
+        raise CheckpointError(f"checkpoint not found: {path}")
+    found = sorted(path.glob("*.ckpt")) or sorted(path.glob("checkpoints/*.ckpt"))
+    inside = ", ".join(str(p) for p in found[:3]) + (", ..." if len(found) > 3 else "")
+    raise CheckpointError(
+        f"{path} is a folder, not a checkpoint file; "
+        + (f"it holds {inside}" if found else "it holds no .ckpt file (nor does a checkpoints/ folder in it)")
+    )
+
+
 def _read_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") -> dict[str, Any]:
     """The contents of a DPCN Lightning checkpoint; :class:`CheckpointError` naming the problem
     for a missing, corrupt or foreign file. The archive's CRCs are checked first (a damaged
     tensor would otherwise load as wrong weights), and only tensors and plain values are read:
     no code in the file runs."""
-    path = Path(path)
-    if not path.is_file():
-        raise CheckpointError(f"checkpoint not found: {path}")
+    path = checkpoint_file(path)
     unreadable = f"cannot read checkpoint {path} (corrupt or not a torch file)"
     damaged = _damaged_member(path)
     if damaged is not None:
