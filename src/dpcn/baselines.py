@@ -76,7 +76,13 @@ def opencv_fourier_mellin(template: np.ndarray, source: np.ndarray) -> Pose:
     first = int(math.ceil(math.log(0.03 * radius) / math.log(radius) * size[0]))
     lp_t = np.ascontiguousarray(cv2.warpPolar(spectrum(t), size, (w / 2, h / 2), radius, flags)[:, first:])
     lp_s = np.ascontiguousarray(cv2.warpPolar(spectrum(s), size, (w / 2, h / 2), radius, flags)[:, first:])
-    (d_log, d_angle), _ = cv2.phaseCorrelate(lp_t, lp_s)
+    # phaseCorrelate's Hann window on the log-polar maps too: their log-radius axis is not
+    # periodic (its ends hold the lowest and the highest frequencies), and unwindowed that
+    # edge matches itself at no shift, reading many scales as 1.0 (51 % of bench_registration's
+    # pairs found, against 94 %). The angle axis spans 360 degrees of a spectrum that repeats
+    # every 180, so the window's middle still holds a whole period.
+    window_lp = cv2.createHanningWindow((lp_t.shape[1], lp_t.shape[0]), cv2.CV_64F)
+    (d_log, d_angle), _ = cv2.phaseCorrelate(lp_t, lp_s, window_lp)
     angle = -d_angle * 360.0 / size[1]
     scale = math.exp(-d_log * math.log(radius) / size[0])
 
