@@ -105,7 +105,7 @@ def run_pairwise(fn, templates, sources, limit: int | None = None):
     return np.array(out), (time.perf_counter() - start) / n, n
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--pairs", type=int, default=400)
     parser.add_argument("--batch", type=int, default=64)
@@ -119,7 +119,7 @@ def main() -> None:
     parser.add_argument(
         "--decoupled", action="store_true", help="also dpcn with stage 1's decoupled (DPCN++) correlation"
     )
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
     cv2.setNumThreads(args.threads)
 
@@ -137,8 +137,9 @@ def main() -> None:
     if args.decoupled:
         est_d, per_d = run_dpcn(templates, sources, args.batch, args.device, rotation_scale_correlation="decoupled")
         rows.append(("dpcn batched, decoupled stage 1", score(est_d, truth), per_d, len(truth)))
-    one, per_one = run_dpcn(templates[:50], sources[:50], 1, args.device)
-    rows.append(("dpcn one pair at a time", score(one, truth[:50]), per_one, 50))
+    n_one = min(50, args.pairs)
+    one, per_one = run_dpcn(templates[:n_one], sources[:n_one], 1, args.device)
+    rows.append(("dpcn one pair at a time", score(one, truth[:n_one]), per_one, n_one))
     cv, per_cv, n_cv = run_pairwise(opencv_fourier_mellin, templates, sources)
     rows.append(("OpenCV Fourier-Mellin", score(cv, truth[:n_cv]), per_cv, n_cv))
     try:
