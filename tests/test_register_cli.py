@@ -134,6 +134,26 @@ def test_corrupt_image_file(tmp_path):
     bad.write_bytes(b"\x89PNG\r\n\x1a\n not really")
     with pytest.raises(DpcnInputError, match="cannot read"):
         load_image(bad)
+    (tmp_path / "empty.png").write_bytes(b"")
+    with pytest.raises(DpcnInputError, match=r"cannot read image file \(unsupported or corrupt\): .*empty.png"):
+        load_image(tmp_path / "empty.png")
+    with pytest.raises(DpcnInputError, match="not a file: "):
+        dpcn.register(tmp_path, tmp_path)
+
+
+def test_integer_and_bool_tensors_read_as_their_full_range(pair):
+    template, source = pair
+    as_float = dpcn.register(template, source).as_tensor()
+    t8, s8 = (torch.from_numpy(np.round(x * 255).astype(np.uint8)) for x in (template, source))
+    as_uint8 = dpcn.register(t8, s8).as_tensor()
+    torch.testing.assert_close(as_uint8, dpcn.register(t8.float() / 255, s8.float() / 255).as_tensor())
+    torch.testing.assert_close(as_uint8, as_float, atol=0.05, rtol=0.01)  # 8-bit rounding of the images
+    masks = torch.from_numpy(template > 0.5), torch.from_numpy(source > 0.5)
+    torch.testing.assert_close(
+        dpcn.register(*masks).as_tensor(), dpcn.register(*(m.float() for m in masks)).as_tensor()
+    )
+    with pytest.raises(DpcnInputError, match="complex tensors are not images"):
+        dpcn.register(torch.zeros(32, 32, dtype=torch.complex64), torch.zeros(32, 32))
 
 
 def run_cli(*args, cwd):
