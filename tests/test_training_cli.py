@@ -391,7 +391,7 @@ print("finished")
 """
 
 
-@pytest.mark.skipif(not hasattr(os, "killpg"), reason="SIGCHLD is POSIX")
+@pytest.mark.skipif(not hasattr(os, "killpg"), reason="the race it guards is a signal to a process group (POSIX)")
 def test_a_worker_death_inside_the_loaders_del_is_not_printed(tmp_path):
     """The race that a signal to the process group can hit (the test above, now and then): a
     worker's death reported while the loader shuts its workers down in ``__del__``. ``fit``
