@@ -265,6 +265,22 @@ def test_gradcheck_end_to_end_with_log_spectrum():
     assert gradcheck(lambda a, b: model(a, b).pose.as_tensor(), (t, s), eps=1e-6, atol=1e-4)
 
 
+def test_radius_window_reaches_phase1_and_keeps_gradients():
+    torch.manual_seed(0)
+    options = dict(base_channels=2, depth=1, image_size=None, n_angles=12, n_radii=10, window=1)
+    plain = DPCN(**options).double().eval()
+    windowed = DPCN(**options, radius_window=True).double().eval()
+    windowed.load_state_dict(plain.state_dict())
+    t = torch.rand(1, 1, 12, 12, dtype=torch.float64, requires_grad=True)
+    s = torch.rand(1, 1, 12, 12, dtype=torch.float64, requires_grad=True)
+    hann = torch.hann_window(10, periodic=False, dtype=torch.float64)
+    maps, maps_windowed = (m(t, s).rotation_scale.log_polar_template for m in (plain, windowed))
+    torch.testing.assert_close(maps_windowed, maps * hann)
+    assert gradcheck(lambda a, b: windowed(a, b).pose.as_tensor(), (t, s), eps=1e-6, atol=1e-4)
+    with pytest.raises(ValueError, match="model.net.radius_window must be true or false, got 'yes'"):
+        DPCN(**options, radius_window="yes")
+
+
 def test_phase1_downsample_and_width_options_shape_the_phase1_unets():
     model = small_dpcn(rotation_scale_downsample=2, rotation_scale_base_channels=3, rotation_scale_depth=2).eval()
     out = model(torch.rand(2, 1, 32, 32), torch.rand(2, 1, 32, 32))

@@ -274,6 +274,7 @@ def estimate_rotation_scale(
     source_shifts: Sequence[tuple[int, int]] = (),
     views: int = 1,
     correlation: str = "joint",
+    radius_window: bool = False,
 ) -> RotationScale:
     """Rotation (mod 180 degrees) and scale of ``source`` relative to ``template``.
 
@@ -308,6 +309,11 @@ def estimate_rotation_scale(
         correlation: ``joint`` (the paper's 2-D log-polar phase correlation) or
             ``decoupled`` (DPCN++'s 1-D correlations of the angle and log-radius profiles);
             see :func:`log_polar_correlation`.
+        radius_window: a Hann window along the log-radius axis of both log-polar maps before
+            the ``joint`` correlation (the ``decoupled`` one windows its radius profiles
+            anyway). The axis is not periodic: its ends hold the lowest and the highest
+            frequencies, and the circular correlation of that edge with itself peaks at no
+            shift, i.e. at scale 1, whatever the pair; the window removes that peak.
 
     Returns:
         :class:`RotationScale` with ``angle`` in ``[-90, 90)`` degrees and ``scale``.
@@ -326,6 +332,8 @@ def estimate_rotation_scale(
         torch.cat([templates, *sources]), window=True, highpass=highpass, log=log_spectrum, half=True
     )
     maps = log_polar(spectra, n_angles, n_radii, min_radius, max_radius, half=True, width=template.shape[-1])
+    if radius_window and correlation == "joint":
+        maps = maps * torch.hann_window(n_radii, periodic=False, device=maps.device, dtype=maps.dtype)
     lp_t, lp_all = maps[: len(templates)].expand(batch, -1, -1, -1), maps[len(templates) :]
     lp_s = lp_all[:batch]
     surface = log_polar_correlation(lp_t, lp_all.view(len(sources), *lp_t.shape), sigma, correlation)
@@ -477,6 +485,9 @@ class PhaseCorrelationEstimator(nn.Module):
         rotation_range: a known range of the rotation, ``[low, high]`` degrees (a heading
             prior, or the paper's ``[0, 180]``); it settles the half-turn (see
             :func:`estimate_translation`). ``None``: the full circle.
+        radius_window: stage 1's log-polar maps under a Hann window along the log-radius
+            axis, which removes the correlation's spurious peak at scale 1 (see
+            :func:`estimate_rotation_scale`).
     """
 
     def __init__(
@@ -499,6 +510,7 @@ class PhaseCorrelationEstimator(nn.Module):
         spectrum_window_step: float = 0.125,
         rotation_scale_correlation: str = "joint",
         rotation_range: tuple[float, float] | None = None,
+        radius_window: bool = False,
     ) -> None:
         super().__init__()
         # Settings arrive from configs and the command line as any type: each is named if wrong.
@@ -507,7 +519,8 @@ class PhaseCorrelationEstimator(nn.Module):
             check_number(name, value, low=0.0, high=1.0, low_open=True)
         log_polar_grid(8, 8, n_angles, n_radii, min_radius, max_radius)  # validates the grid
         check_rotation_scale_correlation(rotation_scale_correlation)
-        for name, value in (("highpass", highpass), ("log_spectrum", log_spectrum), ("resolve_180", resolve_180)):
+        switches = (("highpass", highpass), ("log_spectrum", log_spectrum), ("resolve_180", resolve_180))
+        for name, value in (*switches, ("radius_window", radius_window)):
             check_bool(name, value)
         rotation_sigma = sigma if rotation_sigma is None else rotation_sigma
         rotation_temperature = temperature if rotation_temperature is None else rotation_temperature
@@ -530,6 +543,7 @@ class PhaseCorrelationEstimator(nn.Module):
             scale_range=None if scale_range is None else tuple(scale_range),
             relative=True,
             correlation=rotation_scale_correlation,
+            radius_window=radius_window,
         )
         self.translation_options = dict(
             resolve_180=resolve_180,

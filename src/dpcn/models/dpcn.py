@@ -288,6 +288,7 @@ class DPCN(nn.Module):
         texture_energy: str | None = None,
         rotation_scale_correlation: str = "joint",
         rotation_range: tuple[float, float] | list[float] | None = None,
+        radius_window: bool = False,
     ) -> None:
         super().__init__()
         # Config values by name (they may arrive as strings from the command line).
@@ -317,7 +318,8 @@ class DPCN(nn.Module):
             check_number(f"model.net.{name}", value, low=0.0)
         for name, value in (("temperature", temperature), ("rotation_temperature", rotation_temperature)):
             check_number(f"model.net.{name}", value, low=0.0, low_open=True)
-        for name, value in (("input_skip", input_skip), ("highpass", highpass), ("log_spectrum", log_spectrum)):
+        switches = (("input_skip", input_skip), ("highpass", highpass), ("log_spectrum", log_spectrum))
+        for name, value in (*switches, ("radius_window", radius_window)):
             check_bool(f"model.net.{name}", value)
         if image_size is not None:
             check_sequence("image_size", image_size, 2, "an (H, W) pair of integers")
@@ -354,6 +356,7 @@ class DPCN(nn.Module):
         self.n_angles, self.n_radii = n_angles, n_radii
         self.min_radius, self.max_radius = min_radius, max_radius
         self.highpass, self.log_spectrum = highpass, log_spectrum
+        self.radius_window = radius_window
         self.sigma, self.rotation_sigma = sigma, rotation_sigma
         self.temperature, self.rotation_temperature = temperature, rotation_temperature
         self.window = window
@@ -619,6 +622,7 @@ class DPCN(nn.Module):
             source_shifts=self.spectrum_window_shifts(*source_features.shape[-2:], window_grid),
             views=views,
             correlation=self.rotation_scale_correlation,
+            radius_window=self.radius_window,
         )
 
     def translation_turns(
