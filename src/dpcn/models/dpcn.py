@@ -194,8 +194,10 @@ class DPCN(nn.Module):
             sensor shows the shared structure faintly (the simulated style A).
         image_size: ``(H, W)`` the model is built for; other sizes raise a clear error
             (``None`` accepts any size).
-        n_angles, n_radii, min_radius, max_radius, highpass, log_spectrum: phase-1 log-polar
-            settings (see :func:`~dpcn.estimator.estimate_rotation_scale`).
+        n_angles, n_radii, min_radius, max_radius, highpass, log_spectrum, radius_window:
+            phase-1 log-polar settings (see :func:`~dpcn.estimator.estimate_rotation_scale`;
+            ``radius_window``: a Hann window along the maps' log-radius axis, which the
+            classical estimator gains from and `tiny` trained worse with: README).
         sigma, rotation_sigma, temperature, rotation_temperature, window: sub-pixel peak
             location at inference (see :class:`~dpcn.estimator.PhaseCorrelationEstimator`).
         train_temperature: softmax temperature of the training losses (the paper's
