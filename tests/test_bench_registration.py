@@ -28,13 +28,13 @@ def test_score_counts_a_pair_within_every_threshold(bench):
 
 
 def test_prints_a_row_per_method_with_its_pair_count(bench, capsys):
-    bench.main(["--pairs", "4", "--batch", "2", "--imreg-pairs", "1", "--radius-window"])
+    bench.main(["--pairs", "4", "--batch", "2", "--imreg-pairs", "1", "--no-radius-window"])
     lines = capsys.readouterr().out.splitlines()
     rows = {re.split(r"\s{2,}", line)[0]: line.split() for line in lines if re.search(r"\s\d+\.\d+$", line)}
     assert rows["dpcn batched (batch 2)"][-10] == "4"
     assert rows["dpcn one pair at a time"][-10] == "4"  # not the 50 of a full run
     assert rows["OpenCV Fourier-Mellin"][-10] == "4"
-    assert rows["dpcn batched, radius window"][-10] == "4"
+    assert rows["dpcn batched, no radius window"][-10] == "4"
     for row in rows.values():
         assert all(0.0 <= float(v) <= 100.0 for v in row[-9:-4])  # the five accuracies, in %
     assert any(line.startswith("speed-up of dpcn batched:") for line in lines)

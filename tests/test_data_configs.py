@@ -168,6 +168,23 @@ def test_phase2_share_per_data_config(args, fraction):
 
 
 @pytest.mark.parametrize(
+    "args,expected",
+    [
+        (["model=classical"], True),  # the classical estimator windows stage 1's log-radius axis
+        (["model=classical", "registration.radius_window=false"], False),  # the paper's stage 1
+        ([], False),  # DPCN trained worse with it: off
+        (["model=paper"], False),
+    ],
+)
+def test_radius_window_default_per_model(args, expected):
+    model = instantiate(compose_config(*args).model, _convert_="all")
+    if "model=classical" in args:
+        assert model.estimator.rotation_scale_options["radius_window"] is expected
+    else:
+        assert model.model.radius_window is expected
+
+
+@pytest.mark.parametrize(
     "args,radii",
     [
         ([], (256, 128)),  # tiny trains on 256 log-polar radii and infers on 128

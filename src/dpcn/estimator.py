@@ -487,7 +487,8 @@ class PhaseCorrelationEstimator(nn.Module):
             :func:`estimate_translation`). ``None``: the full circle.
         radius_window: stage 1's log-polar maps under a Hann window along the log-radius
             axis, which removes the correlation's spurious peak at scale 1 (see
-            :func:`estimate_rotation_scale`).
+            :func:`estimate_rotation_scale`). On by default; ``False`` is stage 1 as the
+            paper describes it.
     """
 
     def __init__(
@@ -510,7 +511,7 @@ class PhaseCorrelationEstimator(nn.Module):
         spectrum_window_step: float = 0.125,
         rotation_scale_correlation: str = "joint",
         rotation_range: tuple[float, float] | None = None,
-        radius_window: bool = False,
+        radius_window: bool = True,
     ) -> None:
         super().__init__()
         # Settings arrive from configs and the command line as any type: each is named if wrong.
