@@ -58,6 +58,18 @@ def test_recovers_opencv_pose_on_photos(name, tx, ty, angle, scale):
     assert 0.05 < float(pose.confidence) <= 1.0
 
 
+@pytest.mark.parametrize(
+    "variant", [{"log_spectrum": True}, {"radius_window": False}], ids=["log_spectrum", "no_radius_window"]
+)
+@pytest.mark.parametrize("name,tx,ty,angle,scale", CASES)
+def test_stage_one_variants_recover_opencv_pose_on_photos(variant, name, tx, ty, angle, scale):
+    """Stage 1 on log-compressed spectra, and stage 1 as the paper describes it (without the
+    log-radius window, which is the default), find the same poses within the same tolerance."""
+    template = photo(name)
+    pose = recover(template, cv2_warp(template, tx, ty, angle, scale), **variant)
+    assert_within_photo_tolerance(pose, tx, ty, angle, scale)
+
+
 @pytest.mark.parametrize("size", [(200, 300), (191, 257)])
 def test_non_square_and_odd_sizes(size):
     template = photo("astronaut", size)
@@ -423,13 +435,6 @@ def test_gradcheck_rotation_scale_stage_with_views():
 # ---------------------------------------------------------------- stage 1 on log-compressed spectra
 
 
-@pytest.mark.parametrize("name,tx,ty,angle,scale", CASES)
-def test_log_spectrum_recovers_opencv_pose_on_photos(name, tx, ty, angle, scale):
-    template = photo(name)
-    pose = recover(template, cv2_warp(template, tx, ty, angle, scale), log_spectrum=True)
-    assert_within_photo_tolerance(pose, tx, ty, angle, scale)
-
-
 def test_log_spectrum_correlates_the_log_polar_maps_of_log1p_magnitudes():
     a, b = (t.detach() for t in _small_images())
     options = dict(n_angles=16, n_radii=12, window=2, highpass=False)
@@ -452,14 +457,6 @@ def test_gradcheck_rotation_scale_stage_on_log_spectra():
 
 
 # ---------------------------------------------------------------- the log-radius window
-
-
-@pytest.mark.parametrize("name,tx,ty,angle,scale", CASES)
-def test_stage_one_without_the_radius_window_recovers_opencv_pose_on_photos(name, tx, ty, angle, scale):
-    """The window is the default; stage 1 as the paper describes it still finds these poses."""
-    template = photo(name)
-    pose = recover(template, cv2_warp(template, tx, ty, angle, scale), radius_window=False)
-    assert_within_photo_tolerance(pose, tx, ty, angle, scale)
 
 
 def test_radius_window_finds_rotations_the_scale_one_edge_hid():
