@@ -778,14 +778,11 @@ class DPCN(nn.Module):
                 return tr, t_features, choice + first, unwarped.view(-1, n, *unwarped.shape[1:])[picked, choice]
 
             ft = template_features.translation
-            gated = k > 1 and self.hypothesis_ratio > 0
-            ambiguous = self.ambiguous_pairs(rs.candidate_score) if gated else None
-            if not gated or bool(ambiguous.all()):  # every pair, all its candidates at once
-                # (a lone ambiguous pair included: one source U-Net call instead of two)
+            if k == 1 or self.hypothesis_ratio == 0:  # every pair, all its candidates at once
                 tr, t_features, choice, unwarped = phase2(slice(None), 0, k, ft)
             else:  # every pair's first peak, then the further peaks of the ambiguous pairs
                 tr, t_features, choice, unwarped = phase2(slice(None), 0, 1, ft)
-                rows = ambiguous.nonzero().squeeze(1)
+                rows = self.ambiguous_pairs(rs.candidate_score).nonzero().squeeze(1)
                 if len(rows):
                     further = phase2(rows, 1, k, t_features["t_template"][rows])
                     better = further[0].confidence > tr.confidence[rows]  # the strongest peak wins
