@@ -137,13 +137,18 @@ def main() -> None:
     print(f"fit data={trained} {' '.join(args.overrides)}: {fit_seconds / 60:.1f} min; evaluating {ckpt.name}")
 
     shared = evaluation_overrides(args.overrides)
+    # the checkpoint's inference settings are DPCN's: the classical command refuses them
+    classical_shared = [o for o in shared if o.split("=")[0].lstrip("+~") not in INFERENCE_KEYS]
     rows = []
     for data in (args.evaluate or trained).split(","):
         for stage in args.stages.split(","):
-            for label, model in (("DPCN", [f"ckpt_path={ckpt}"]), ("classical", ["model=classical"])):
+            for label, model, overrides in (
+                ("DPCN", [f"ckpt_path={ckpt}"], shared),
+                ("classical", ["model=classical"], classical_shared),
+            ):
                 run = out / f"{stage}-{data}-{label}"
                 seconds = dpcn(
-                    stage, f"data={data}", *model, *shared, f"hydra.run.dir={run}", log=run.with_suffix(".log")
+                    stage, f"data={data}", *model, *overrides, f"hydra.run.dir={run}", log=run.with_suffix(".log")
                 )
                 metrics = read_metrics(run / f"metrics_{stage}.csv")
                 rows.append((f"{label} {data} ({'val' if stage == 'validate' else 'test'})", metrics, seconds))

@@ -71,6 +71,9 @@ def test_a_run_evaluates_the_data_an_experiment_trains_on(tmp_path):
     assert fit.data.name == "sim_dynamic" and fit.model.net.log_spectrum is True
     test = OmegaConf.load(out / "test-sim_dynamic-DPCN" / ".hydra" / "config.yaml")
     assert test.data.dataset.appearance_change == 0.3 and test.rotation_views == 4
+    # the classical estimator on the same pairs, without the checkpoint's inference settings
+    classical = OmegaConf.load(out / "test-sim_dynamic-classical" / ".hydra" / "config.yaml")
+    assert classical.data.dataset.appearance_change == 0.3 and classical.rotation_views is None
 
 
 def test_the_trained_data_is_read_from_the_fit_run(tmp_path):

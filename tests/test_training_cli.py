@@ -15,6 +15,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from omegaconf import OmegaConf
 
 from dpcn.pose import Pose
 from dpcn.training.module import DPCNModule, load_matcher
@@ -605,6 +606,8 @@ def test_predict_with_a_checkpoint(trained, tmp_path):
         (["fit", "model.net.rotation_scale_correlation=1d"], "rotation_scale_correlation must be one of joint"),
         (["fit", "model.net.rotation_range=[0,400]"], "rotation_range must be [low, high] in degrees with 0 < high"),
         (["test", "model=classical", "registration.rotation_range=[90]"], "rotation_range must be [low, high] in"),
+        (["test", "model=classical", "spectrum_window_grid=3"], "set registration.spectrum_window_grid= instead"),
+        (["test", "-m", "model=classical", "inference_radii=64"], "inference_radii= applies to a checkpoint"),
         (["fit", "trainer.precision=bf32"], "trainer.precision must be auto or one of Lightning's 32-true, bf16-mixed"),
         (["fit", "seed=abc"], "seed must be an integer >= 0, got 'abc'"),
         (["test", "model=classical", "seed=4294967296"], "seed must be an integer < 2**32, got 4294967296"),
@@ -628,6 +631,19 @@ def test_bad_runs_fail_in_one_line(tmp_path, args, message):
     lines = [line for line in out.stderr.splitlines() if line.startswith("dpcn ")]
     assert len(lines) == 1 and message in lines[0], out.stderr[-2000:]
     assert "Traceback" not in out.stderr
+
+
+def test_the_classical_estimator_on_an_experiments_pairs(tmp_path):
+    """experiment=paper_table1 merges DPCN settings into `model` (model.net...) and sets a
+    checkpoint's rotation_views; the classical estimator leaves them out, in one log line,
+    and tests on the experiment's pairs."""
+    run = tmp_path / "c"
+    out = dpcn("test", "model=classical", "experiment=paper_table1", *SMALL_DATA, f"hydra.run.dir={run}", cwd=tmp_path)
+    assert "model=classical leaves out model.net: DPCN settings" in out.stdout + out.stderr
+    assert "classical on sim_dynamic" in out.stdout
+    composed = OmegaConf.load(run / ".hydra" / "config.yaml")
+    assert composed.data.dataset.appearance_change == 0.3 and composed.rotation_views == 4
+    assert (run / "metrics_test.csv").is_file()
 
 
 def test_checkpoint_for_another_image_size(trained, tmp_path):

@@ -97,9 +97,36 @@ INFERENCE_KEYS = (
 )  # fmt: skip
 
 
+# The classical estimator's settings of the same name, where it has one.
+CLASSICAL_EQUIVALENTS = {
+    "rotation_range": "registration.rotation_range",
+    "spectrum_window_grid": "registration.spectrum_window_grid",
+}
+
+
 def inference_settings(cfg: DictConfig) -> dict[str, int | str | None]:
     """The top-level overrides of a checkpoint's inference settings (``None``: keep)."""
     return {key: cfg.get(key) for key in INFERENCE_KEYS}
+
+
+def check_no_inference_overrides(command_line: list[str]) -> None:
+    """Without a checkpoint the classical estimator runs, which the top-level inference keys do
+    not reach: one given on the command line (``predict ... rotation_range=[0,180]``) is a
+    :class:`CliError` naming the setting that would apply, not a silently ignored value. Keys
+    an ``experiment=`` sets are meant for a checkpoint and stay unused."""
+    given = [o.split("=", 1)[0].lstrip("+~") for o in command_line]
+    for key in (k for k in INFERENCE_KEYS if k in given):
+        instead = CLASSICAL_EQUIVALENTS.get(key)
+        runs = "without one the classical estimator runs"
+        what = f"{runs}: set {instead}= instead" if instead else f"{runs}, which has no such setting"
+        raise CliError(f"{key}= applies to a checkpoint (ckpt_path=PATH); {what}")
+
+
+def _command_line() -> list[str]:
+    """This run's overrides as given on the command line (one job's values under -m)."""
+    from hydra.core.hydra_config import HydraConfig
+
+    return list(HydraConfig.get().overrides.task)
 
 
 def _pair_matcher(
@@ -113,6 +140,7 @@ def _pair_matcher(
     if cfg.ckpt_path:
         module = load_matcher(cfg.ckpt_path, device, **inference_settings(cfg))
         return module.match, module.model.check_inputs
+    check_no_inference_overrides(_command_line())
     classical = ClassicalModule(**OmegaConf.to_container(cfg.registration, resolve=True)).to(device)
     return classical.match, classical.estimator.check_inputs
 
@@ -490,11 +518,12 @@ def _run_evaluation(cfg: DictConfig, stage: str) -> None:
         module.translation_threshold = float(cfg.data.translation_threshold)
         name = f"DPCN {ckpt.name}"
     else:
-        module = instantiate(cfg.model, _convert_="all")
+        module = _classical_module(cfg) if _is_classical(cfg) else instantiate(cfg.model, _convert_="all")
         if not isinstance(module, ClassicalModule):
             raise CliError(
                 f"{stage} of a DPCN model needs ckpt_path=PATH (or model=classical for the classical estimator)"
             )
+        check_no_inference_overrides(_command_line())
         name = "classical"
     trainer = _trainer(cfg, run_dir, fit=False)
     quiet_worker_shutdown()
@@ -519,6 +548,29 @@ def _run_evaluation(cfg: DictConfig, stage: str) -> None:
             f"metrics written to {run_dir / f'metrics_{stage}.csv'} "
             f"(every pair: pairs_{stage}.csv; accuracy against threshold: accuracy_{stage}.csv)"
         )
+
+
+def _is_classical(cfg: DictConfig) -> bool:
+    return str(cfg.model.get("_target_", "")).endswith(".ClassicalModule")
+
+
+def _classical_module(cfg: DictConfig):
+    """``model=classical`` as composed, less the DPCN settings that an ``experiment=`` merges
+    into ``model`` (``model.net``... of ``paper_table1``), which the classical estimator does
+    not take: one log line names them, so that ``test model=classical experiment=...`` gives
+    the classical row on the experiment's pairs."""
+    import inspect
+
+    from hydra.utils import instantiate
+
+    from .estimator import PhaseCorrelationEstimator
+
+    takes = {"_target_", "translation_threshold", *inspect.signature(PhaseCorrelationEstimator).parameters}
+    options = OmegaConf.to_container(cfg.model, resolve=True)
+    left_out = sorted(key for key in options if key not in takes)
+    if left_out:
+        log.info("model=classical leaves out %s: DPCN settings", ", ".join(f"model.{key}" for key in left_out))
+    return instantiate({key: value for key, value in options.items() if key in takes}, _convert_="all")
 
 
 def run_make_data(cfg: DictConfig) -> None:
