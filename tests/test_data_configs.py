@@ -224,7 +224,7 @@ def test_csv_config(tmp_path):
     item = dm.datasets["val"][1]
     torch.testing.assert_close(item["pose"], torch.tensor([0.5, 4.0, -40.0, 1.0]))
     cfg = compose_config("data=csv")
-    with pytest.raises(DataError, match="needs data.train_csv"):
+    with pytest.raises(DataError, match="needs the ground-truth CSV of each split .* data.test_csv to test"):
         instantiate(cfg.data).setup("fit")
     # `test` on them writes each pair's pose under its name, with the errors.
     out = dpcn("test", "model=classical", "data=csv", f"data.test_csv={csv}", "data.num_workers=0",

@@ -83,5 +83,8 @@ def map_pairs(
 def csv_pairs(length: int, seed: int, csv_path: str | Path | None = None, **kwargs: Any) -> CsvPairs:
     """:class:`CsvPairs` (pre-cut pairs); ``length``/``seed`` are ignored: the CSV fixes the pairs."""
     if csv_path is None:
-        raise DataError("data=csv needs data.train_csv, data.val_csv and data.test_csv (paths to ground-truth CSVs)")
+        raise DataError(
+            "data=csv needs the ground-truth CSV of each split a command reads: data.train_csv and "
+            "data.val_csv to fit, data.val_csv to validate, data.test_csv to test"
+        )
     return CsvPairs(csv_path, **kwargs)
