@@ -179,6 +179,20 @@ def test_match_in_chunks_equals_one_batch_and_still_checks_inputs():
         model.match(t, s, chunk_size=0)
 
 
+@pytest.mark.parametrize(("views", "chunks"), [(1, [4, 4, 1]), (2, [2, 2, 2, 2, 1]), (8, [1] * 9)])
+def test_match_on_a_cpu_runs_chunks_of_four_pairs_divided_by_the_views(views, chunks):
+    """Bigger CPU chunks fall out of the cache (DPCN.match's docstring has the timings)."""
+    model = small_dpcn(rotation_views=views).eval()
+    t, s = torch.rand(9, 1, 32, 32), torch.rand(9, 1, 32, 32)
+    seen = []
+    hook = model.rs_source.register_forward_hook(lambda _m, args, _out: seen.append(len(args[0]) // views))
+    try:
+        model.match(t, s)
+    finally:
+        hook.remove()
+    assert seen == chunks
+
+
 @pytest.mark.parametrize(("views", "hypotheses", "ratio"), [(1, 1, 0.0), (2, 2, 0.0), (1, 2, 0.7)])
 def test_one_template_against_many_sources_equals_copies_and_runs_its_unets_once(views, hypotheses, ratio):
     torch.manual_seed(3)

@@ -834,18 +834,19 @@ class DPCN(nn.Module):
     def match(self, template: Tensor, source: Tensor, chunk_size: int | None = None) -> Pose:
         """Inference: the pose mapping ``template`` onto ``source`` (``(B,)`` fields).
 
-        Large batches run ``chunk_size`` pairs at a time (default: 8 on CPUs, ``8 //
+        Large batches run ``chunk_size`` pairs at a time (default: 4 on CPUs, ``4 //
         rotation_views`` with several views, all at once elsewhere): on a CPU the
         full-resolution feature maps of bigger batches fall out of the cache, and the time per
-        pair grows instead of shrinking (32 pairs at once: ~2x slower per pair than 8 at a
-        time on 2 cores).
+        pair grows instead of shrinking (`tiny` on 2 cores, 32 trained-on pairs: 29-34 ms per
+        pair in chunks of 4, 38-40 in chunks of 8, 52-57 in chunks of 16; with 4 views 66 ms
+        one at a time, 85 in pairs).
 
         One template against many sources (a ``(1, C, H, W)`` template, or a batch expanded
         from one, as :func:`dpcn.io.prepare_pair` makes it): the template's U-Nets run once
         for all the chunks.
         """
         if chunk_size is None:
-            chunk_size = max(1, 8 // self.rotation_views) if source.device.type == "cpu" else source.shape[0]
+            chunk_size = max(1, 4 // self.rotation_views) if source.device.type == "cpu" else source.shape[0]
         if chunk_size < 1:
             raise ValueError(f"chunk_size must be >= 1, got {chunk_size}")
         was_training = self.training
