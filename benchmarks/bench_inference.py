@@ -18,6 +18,7 @@ on the pairs and weights. Noise pairs are all ambiguous, so the default rows are
         [--compile [BACKEND]]                                     # torch.compile the U-Nets (default inductor)
         [--rotation-range 0,180]                                  # also with DPCN.rotation_range (one phase-2 pass)
         [--one-template]                                          # also one template against the batch's sources
+        [--chunks 2,4,8]                                          # DPCN.match's chunk_size (CPU default 4)
 
 With --one-template every model also matches the batch's first template against all its sources in
 one call (a robot's map against aerial crops at many particle poses: DPCN runs the template's
@@ -147,6 +148,11 @@ def int_list(text: str) -> list[int]:
         raise argparse.ArgumentTypeError(f"expected comma-separated integers, got {text!r}") from None
 
 
+def positive_int_list(text: str) -> list[int]:
+    """argparse type: comma-separated integers >= 1."""
+    return [positive_int(v) for v in text.split(",")]
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
@@ -185,6 +191,12 @@ def main(argv: list[str] | None = None) -> None:
         "--one-template",
         action="store_true",
         help="also time one template against the --batch sources in one call (its U-Nets run once)",
+    )
+    parser.add_argument(
+        "--chunks",
+        type=positive_int_list,
+        default=None,
+        help="comma-separated chunk_size values of DPCN.match to time (pairs per forward pass; default: 4 on CPUs)",
     )
     parser.add_argument("--bf16", action="store_true", help="autocast the U-Nets to bfloat16 (GPU)")
     parser.add_argument("--unet-dtype", choices=UNET_DTYPES, default=None, help="DPCN.unet_dtype of the timed models")
@@ -241,6 +253,12 @@ def main(argv: list[str] | None = None) -> None:
             for unet in (n for names in PHASE_UNETS.values() for n in names):
                 getattr(models[label], unet).compile(backend=args.compile)
             models[f"{label}, compiled ({args.compile})"] = models.pop(label)
+    chunk_sizes: dict[str, int] = {}  # label -> DPCN.match's chunk_size (absent: its default)
+    for label in list(models) if args.chunks else []:
+        model = models.pop(label)
+        for chunk in args.chunks:  # the same model under each chunk size
+            models[f"{label}, chunk={chunk}"] = model
+            chunk_sizes[f"{label}, chunk={chunk}"] = chunk
     models["classical (no U-Nets)"] = PhaseCorrelationEstimator()
 
     if args.pairs:  # the test split of the sim data configs (seed 2)
@@ -256,28 +274,40 @@ def main(argv: list[str] | None = None) -> None:
         except ValueError as error:
             parser.error(str(error))
 
-    def run(model: torch.nn.Module, start: int, stop: int, one_template: bool = False) -> None:
+    def run(
+        model: torch.nn.Module, start: int, stop: int, one_template: bool = False, chunk: int | None = None
+    ) -> None:
         # DPCN.match: what users call (batches chunked on CPUs); the classical estimator has
         # no chunking.
         infer = getattr(model, "match", model)
         templates = pairs[0, start : start + 1] if one_template else pairs[0, start:stop]
+        chunking = {} if chunk is None else {"chunk_size": chunk}
         with torch.inference_mode(), torch.autocast(device.split(":")[0], torch.bfloat16, enabled=args.bf16):
-            infer(templates, pairs[1, start:stop])
+            infer(templates, pairs[1, start:stop], **chunking)
 
     models = {label: model.to(device).eval() for label, model in models.items()}
     if args.pairs:  # each pair's cost depends on the pair (the gate): the mean over a stream of them
         one = timed_in_turn(
-            {label: one_at_a_time(partial(run, model), args.batch) for label, model in models.items()},
+            {
+                label: one_at_a_time(partial(run, model, chunk=chunk_sizes.get(label)), args.batch)
+                for label, model in models.items()
+            },
             device,
             args.rounds,
         )
         one = {label: seconds / args.batch for label, seconds in one.items()}
     else:
-        one = timed_in_turn({label: partial(run, model, 0, 1) for label, model in models.items()}, device, args.rounds)
-    batched = {label: partial(run, model, 0, args.batch) for label, model in models.items()}
+        one = timed_in_turn(
+            {label: partial(run, model, 0, 1, chunk=chunk_sizes.get(label)) for label, model in models.items()},
+            device,
+            args.rounds,
+        )
+    batched = {
+        label: partial(run, model, 0, args.batch, chunk=chunk_sizes.get(label)) for label, model in models.items()
+    }
     if args.one_template:
         for label, model in models.items():
-            batched[f"{label}, one template"] = partial(run, model, 0, args.batch, True)
+            batched[f"{label}, one template"] = partial(run, model, 0, args.batch, True, chunk_sizes.get(label))
     many = timed_in_turn(batched, device, max(3, args.rounds // 3))
     width = max(34, *(len(label) for label in models))
     shared = f" {'one template (ms/source)':>25s}" if args.one_template else ""

@@ -82,10 +82,28 @@ def test_gated_hypotheses_on_simulated_pairs(bench, capsys):
     assert labels == ["DPCN tiny, K=3, ratio=0.0", "DPCN tiny, K=3, ratio=0.7", "classical (no U-Nets)"]
 
 
+def test_chunk_sizes_time_the_same_model_chunked_differently(bench, capsys, monkeypatch):
+    from dpcn.models import DPCN
+
+    chunks, match = [], DPCN.match
+
+    def recorded(self, template, source, chunk_size=None):
+        chunks.append((len(source), chunk_size))
+        return match(self, template, source, chunk_size)
+
+    monkeypatch.setattr(DPCN, "match", recorded)
+    bench.main(["--presets", "tiny", "--size", "64", "--batch", "3", "--rounds", "1", "--chunks", "1,3"])
+    lines = capsys.readouterr().out.splitlines()
+    labels = [re.split(r"\s{2,}", line.strip())[0] for line in lines[2:] if line.strip()]
+    assert labels == ["DPCN tiny, chunk=1", "DPCN tiny, chunk=3", "classical (no U-Nets)"]
+    assert {(3, 1), (3, 3)} <= set(chunks) and all(size is not None for _, size in chunks)
+
+
 @pytest.mark.parametrize(
     "args,message",
     [
         (["--rounds", "0"], "argument --rounds: expected an integer >= 1, got '0'"),
+        (["--chunks", "4,0"], "argument --chunks: expected an integer >= 1, got '0'"),
         (["--radii", "abc"], "argument --radii: expected comma-separated integers, got 'abc'"),
         (["--radii", "1"], "inference_radii must be an integer >= 2 or None, got 1"),
         (["--hypothesis-ratios", "2"], "hypothesis_ratio must be a finite number in [0, 1], got 2.0"),
