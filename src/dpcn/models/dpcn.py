@@ -837,9 +837,9 @@ class DPCN(nn.Module):
         Large batches run ``chunk_size`` pairs at a time (default: 4 on CPUs, ``4 //
         rotation_views`` with several views, all at once elsewhere): on a CPU the
         full-resolution feature maps of bigger batches fall out of the cache, and the time per
-        pair grows instead of shrinking (`tiny` on 2 cores, 32 trained-on pairs: 29-34 ms per
-        pair in chunks of 4, 38-40 in chunks of 8, 52-57 in chunks of 16; with 4 views 66 ms
-        one at a time, 85 in pairs).
+        pair grows instead of shrinking (`tiny` on 2 cores, 32 test pairs, ``python
+        benchmarks/bench_inference.py --chunks``: 30.0 ms per pair in chunks of 4, 36.9 in
+        chunks of 8, 52.6 in chunks of 16; with 4 views 89.7 one at a time, 94.4 in twos).
 
         One template against many sources (a ``(1, C, H, W)`` template, or a batch expanded
         from one, as :func:`dpcn.io.prepare_pair` makes it): the template's U-Nets run once
