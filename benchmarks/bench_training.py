@@ -84,6 +84,11 @@ def experiment_overrides(name: str) -> list[str]:
     return flat
 
 
+def override_key(override: str) -> str:
+    """The key a Hydra override sets (``+data.x=1`` -> ``data.x``)."""
+    return override.split("=")[0].lstrip("+~")
+
+
 def evaluation_overrides(overrides: list[str]) -> list[str]:
     """The fit overrides that the evaluations repeat: the image size and channels (the model is
     built for them), the seed, the checkpoint's inference settings (``rotation_views``...), and
@@ -92,17 +97,14 @@ def evaluation_overrides(overrides: list[str]) -> list[str]:
     ``experiment=`` sets (the command line's own win, as in fit). Keys of the training alone
     (``data.epoch_size``, ``data.batch_size``...) are harmless there."""
 
-    def key(override: str) -> str:
-        return override.split("=")[0].lstrip("+~")
-
-    given = {key(o) for o in overrides}
+    given = {override_key(o) for o in overrides}
     expanded: list[str] = []
     for o in overrides:
-        if key(o) == "experiment":
-            expanded += [e for e in experiment_overrides(o.split("=", 1)[1]) if key(e) not in given]
+        if override_key(o) == "experiment":
+            expanded += [e for e in experiment_overrides(o.split("=", 1)[1]) if override_key(e) not in given]
         else:
             expanded.append(o)
-    return [o for o in expanded if key(o) in REPEATED or key(o).startswith("data.")]
+    return [o for o in expanded if override_key(o) in REPEATED or override_key(o).startswith("data.")]
 
 
 def trained_data(fit_dir: Path) -> str:
@@ -138,7 +140,7 @@ def main() -> None:
 
     shared = evaluation_overrides(args.overrides)
     # the checkpoint's inference settings are DPCN's: the classical command refuses them
-    classical_shared = [o for o in shared if o.split("=")[0].lstrip("+~") not in INFERENCE_KEYS]
+    classical_shared = [o for o in shared if override_key(o) not in INFERENCE_KEYS]
     rows = []
     for data in (args.evaluate or trained).split(","):
         for stage in args.stages.split(","):
