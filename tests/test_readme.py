@@ -22,11 +22,12 @@ def python_examples() -> list[str]:
     return re.findall(r"```python\n(.*?)```", section, flags=re.S)
 
 
-def test_the_python_section_has_its_two_examples():
+def test_the_python_section_has_its_three_examples():
     blocks = python_examples()
-    assert len(blocks) == 2
+    assert len(blocks) == 3
     assert "dpcn.register(template, source)" in blocks[0]
     assert "DPCNModule.load_from_checkpoint(" in blocks[1]
+    assert "dpcn.load_model(" in blocks[2]
 
 
 def test_classical_example_recovers_an_opencv_pose():
@@ -53,3 +54,15 @@ def test_checkpoint_example_runs_on_a_checkpoint_file(tmp_path):
     exec(code.replace("outputs/fit/<time>/checkpoints/last.ckpt", str(path)), namespace)
     assert isinstance(namespace["pose"], Pose) and len(namespace["pose"]) == 1
     assert isinstance(namespace["out"], DPCNOutput) and namespace["out"].pose.tx.shape == (2,)
+
+
+def test_load_model_example_matches_as_the_lightning_module_does(tmp_path):
+    path = write_checkpoint(tmp_path / "last.ckpt", "image_size=64")
+    code = python_examples()[2]
+    assert code.count('"outputs/fit/<time>/checkpoints/last.ckpt"') == 1
+    template = photo("camera", (64, 64))
+    namespace = {"template": template, "source": cv2_warp(template, 3.0, 2.0, 20.0, 1.0)}
+    exec(code.replace("outputs/fit/<time>/checkpoints/last.ckpt", str(path)), namespace)
+    module = {"template": namespace["template"], "source": namespace["source"]}
+    exec(python_examples()[1].replace("outputs/fit/<time>/checkpoints/last.ckpt", str(path)).split("out =")[0], module)
+    torch.testing.assert_close(namespace["pose"].as_tensor(), module["pose"].as_tensor(), rtol=0, atol=0)

@@ -134,15 +134,20 @@ def _pair_matcher(
 ) -> tuple[Callable[[Tensor, Tensor], Pose], Callable[[Tensor, Tensor], None]]:
     """``predict``'s matcher of ``(B, C, H, W)`` pairs and its input check (raises ``ValueError``
     naming the problem): the checkpoint's DPCN, or without ``ckpt_path`` the classical estimator
-    with the ``registration`` settings."""
-    from .training.module import ClassicalModule, load_matcher
-
+    with the ``registration`` settings. Neither needs Lightning, whose import would double the
+    command's start-up."""
     if cfg.ckpt_path:
-        module = load_matcher(cfg.ckpt_path, device, **inference_settings(cfg))
-        return module.match, module.model.check_inputs
+        from .checkpoint import load_model
+
+        model = load_model(cfg.ckpt_path, device, **inference_settings(cfg))
+        return model.match, model.check_inputs
+    import torch
+
+    from .estimator import PhaseCorrelationEstimator
+
     check_no_inference_overrides(_command_line())
-    classical = ClassicalModule(**OmegaConf.to_container(cfg.registration, resolve=True)).to(device)
-    return classical.match, classical.estimator.check_inputs
+    estimator = PhaseCorrelationEstimator(**OmegaConf.to_container(cfg.registration, resolve=True)).to(device)
+    return torch.no_grad()(estimator), estimator.check_inputs
 
 
 def run_predict(cfg: DictConfig) -> None:
@@ -229,7 +234,7 @@ def _run_dir() -> Path:
 def _check_ckpt(path: str | None) -> Path | None:
     if not path:
         return None
-    from .training.module import checkpoint_file
+    from .checkpoint import checkpoint_file
 
     return checkpoint_file(path)
 

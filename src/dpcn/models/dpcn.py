@@ -49,6 +49,7 @@ from ..estimator import (
     unwarp_rotation_scale,
     window_grid_shifts,
 )
+from ..io import prepare_pair
 from ..ops._checks import check_pair, copies_of_one, full_precision, inputs_checked
 from ..ops.logpolar import log_polar_grid, log_radius_step
 from ..pose import Pose, wrap_angle
@@ -834,6 +835,9 @@ class DPCN(nn.Module):
     def match(self, template: Tensor, source: Tensor, chunk_size: int | None = None) -> Pose:
         """Inference: the pose mapping ``template`` onto ``source`` (``(B,)`` fields).
 
+        ``(B, C, H, W)`` tensors, moved to the model's device; or anything
+        :func:`dpcn.io.prepare_pair` reads (``(H, W)`` / ``(H, W, C)`` arrays, image paths).
+
         Large batches run ``chunk_size`` pairs at a time (default: 4 on CPUs, ``4 //
         rotation_views`` with several views, all at once elsewhere): on a CPU the
         full-resolution feature maps of bigger batches fall out of the cache, and the time per
@@ -845,8 +849,12 @@ class DPCN(nn.Module):
         from one, as :func:`dpcn.io.prepare_pair` makes it): the template's U-Nets run once
         for all the chunks.
         """
+        device = self.rs_template.head.weight.device
+        if not (isinstance(template, Tensor) and template.ndim == 4):
+            template, source = prepare_pair(template, source, device)
+        template, source = template.to(device), source.to(device)
         if chunk_size is None:
-            chunk_size = max(1, 4 // self.rotation_views) if source.device.type == "cpu" else source.shape[0]
+            chunk_size = max(1, 4 // self.rotation_views) if device.type == "cpu" else source.shape[0]
         if chunk_size < 1:
             raise ValueError(f"chunk_size must be >= 1, got {chunk_size}")
         was_training = self.training

@@ -3,10 +3,6 @@
 from __future__ import annotations
 
 import math
-import pickle
-import re
-import zipfile
-import zlib
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -18,6 +14,17 @@ from omegaconf import OmegaConf
 from torch import Tensor
 
 from .._validate import check_bool, check_int, check_number
+from ..checkpoint import (
+    CheckpointError,
+    does_not_fit,
+    dpcn_network,
+    first_sentence,
+    inference_settings,
+    load_fitting_weights,
+    read_checkpoint,
+    set_inference_settings,
+    weight_differences,
+)
 from ..estimator import PhaseCorrelationEstimator, estimate_translation, unwarp_rotation_scale
 from ..io import prepare_pair
 from ..metrics import (
@@ -30,7 +37,7 @@ from ..metrics import (
     write_curve_csv,
     write_pairs_csv,
 )
-from ..models.dpcn import DPCN, PHASE_UNETS
+from ..models.dpcn import PHASE_UNETS
 from ..ops._checks import inputs_checked
 from ..pose import Pose, wrap_angle
 from .losses import DPCNLoss, rotation_scale_target, translation_target
@@ -50,10 +57,6 @@ def _warmup_cosine(step: int, total: int, warmup: float = 0.1, floor: float = 0.
         return floor + (1.0 - floor) * 0.5 * (1.0 - math.cos(math.pi * step / ramp))
     progress = min(1.0, (step - ramp) / max(1, total - ramp))
     return 0.5 * (1.0 + math.cos(math.pi * progress))
-
-
-class CheckpointError(ValueError):
-    """A checkpoint that is missing, unreadable or not a dpcn checkpoint."""
 
 
 def _plain_values(value: Any) -> Any:
@@ -254,10 +257,7 @@ class DPCNModule(_EvaluationMixin, L.LightningModule):
         translation_fraction, translation_threshold = plain(translation_fraction), plain(translation_threshold)
         warmup_epochs, max_epochs = plain(warmup_epochs), plain(max_epochs)
         self.save_hyperparameters()
-        net = dict(net or {})
-        net.setdefault("train_temperature", temperature if isinstance(temperature, (int, float)) else list(temperature))
-        net.setdefault("learnable_temperature", learnable_temperature)
-        self.model = DPCN(**net)
+        self.model = dpcn_network(net, temperature, learnable_temperature)
         self.loss = DPCNLoss(**(loss or {}))
         self.translation_threshold = translation_threshold
         self.frozen = frozen
@@ -291,7 +291,7 @@ class DPCNModule(_EvaluationMixin, L.LightningModule):
         Lightning unchecked."""
         local = isinstance(checkpoint_path, (str, Path)) and "://" not in str(checkpoint_path)
         if local:
-            _read_checkpoint(checkpoint_path)
+            read_checkpoint(checkpoint_path)
             weights_only = True if weights_only is None else weights_only
         try:
             return super().load_from_checkpoint(
@@ -301,17 +301,13 @@ class DPCNModule(_EvaluationMixin, L.LightningModule):
             if not local:
                 raise
             # unknown or missing arguments, or weights of another shape: an older or newer release
-            raise CheckpointError(
-                f"checkpoint {checkpoint_path} does not fit this version of dpcn: {_first_sentence(error)}"
-            ) from None
+            raise does_not_fit(checkpoint_path, first_sentence(error)) from None
 
     # ---------------------------------------------------------------- inference
     def match(self, template: Tensor, source: Tensor) -> Pose:
         """Pose of ``source`` relative to ``template`` (tensors ``(B, C, H, W)`` or arrays); one
         template (a batch of one, or an array) is matched against every source of a batch."""
-        if not (isinstance(template, Tensor) and template.ndim == 4):
-            template, source = prepare_pair(template, source, self.device)
-        return self.model.match(template.to(self.device), source.to(self.device))
+        return self.model.match(template, source)
 
     def forward(self, template: Tensor, source: Tensor) -> Pose:
         return self.match(template, source)
@@ -468,90 +464,6 @@ class ClassicalModule(_EvaluationMixin, L.LightningModule):
         return None
 
 
-def _damaged_member(path: Path) -> str | None:
-    """What fails the CRC check of a torch zip archive, or ``None``. torch reads the members
-    without checking them, so damage inside a tensor's bytes would load as wrong weights."""
-    if not zipfile.is_zipfile(path):  # not a zip (or one without its end): torch.load tells
-        return None
-    try:
-        with zipfile.ZipFile(path) as archive:
-            bad = archive.testzip()
-    except (zipfile.BadZipFile, OSError, EOFError, zlib.error) as error:
-        return f"a torch archive that cannot be read through ({_first_sentence(error)})"
-    if bad is None:
-        return None
-    return f"archive member {bad!r} fails its CRC check (the file changed after it was written)"
-
-
-def _unreadable_reason(path: Path, error: Exception) -> str:
-    """What is wrong with a file ``torch.load`` failed on, in words: torch's own message names
-    its unpickler or zip reader (e.g. "Ran out of input", "[Errno 22] Invalid argument")."""
-    size = path.stat().st_size
-    if size == 0:
-        return "the file is empty (0 bytes)"
-    with path.open("rb") as f:
-        head = f.read(8)
-    if head.startswith(b"PK"):  # torch's zip format, the only one it has written since 1.6
-        if not zipfile.is_zipfile(path):
-            ending = "without its end (an interrupted write or copy?)"
-            return f"the file ends too early: a torch archive of {size} bytes {ending}"
-        return f"a torch archive whose contents are damaged ({_first_sentence(error)})"
-    if head.startswith(b"\x80"):  # a pickle: torch's legacy format
-        return f"a damaged legacy torch file ({_first_sentence(error)})"
-    return f"not a torch file: it begins with {head!r}"
-
-
-def _first_sentence(error: Exception) -> str:
-    text = " ".join(str(error).split()) or type(error).__name__
-    return text.split(". ")[0].rstrip(".")[:160]
-
-
-def checkpoint_file(path: str | Path) -> Path:
-    """``path`` as a :class:`Path` if it is a file; :class:`CheckpointError` if it does not
-    exist, or if it is a folder (a run's folder or its ``checkpoints/``), naming the
-    checkpoints inside it."""
-    path = Path(path)
-    if path.is_file():
-        return path
-    if not path.is_dir():
-        raise CheckpointError(f"checkpoint not found: {path}")
-    found = sorted(path.glob("*.ckpt")) or sorted(path.glob("checkpoints/*.ckpt"))
-    inside = ", ".join(str(p) for p in found[:3]) + (", ..." if len(found) > 3 else "")
-    raise CheckpointError(
-        f"{path} is a folder, not a checkpoint file; "
-        + (f"it holds {inside}" if found else "it holds no .ckpt file (nor does a checkpoints/ folder in it)")
-    )
-
-
-def _read_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") -> dict[str, Any]:
-    """The contents of a DPCN Lightning checkpoint; :class:`CheckpointError` naming the problem
-    for a missing, corrupt or foreign file. The archive's CRCs are checked first (a damaged
-    tensor would otherwise load as wrong weights), and only tensors and plain values are read:
-    no code in the file runs."""
-    path = checkpoint_file(path)
-    unreadable = f"cannot read checkpoint {path} (corrupt or not a torch file)"
-    damaged = _damaged_member(path)
-    if damaged is not None:
-        raise CheckpointError(f"{unreadable}: {damaged}")
-    try:  # tensors and plain values only: a checkpoint from elsewhere cannot run code here
-        checkpoint = torch.load(path, map_location=map_location, weights_only=True)
-    except pickle.UnpicklingError as error:
-        code = re.search(r"GLOBAL ([\w.]+)", str(error))
-        if code is None:
-            raise CheckpointError(f"{unreadable}: {_unreadable_reason(path, error)}") from None
-        raise CheckpointError(
-            f"{path} holds Python objects that loading it would run ({code.group(1)}); dpcn reads only "
-            "tensors and plain values from checkpoints (is the file from a source you trust?)"
-        ) from None
-    except Exception as error:  # torch raises many types for a damaged file
-        raise CheckpointError(f"{unreadable}: {_unreadable_reason(path, error)}") from None
-    if not isinstance(checkpoint, dict) or "state_dict" not in checkpoint or "hyper_parameters" not in checkpoint:
-        raise CheckpointError(f"{path} is not a Lightning checkpoint of a dpcn model")
-    if not any(key.startswith("model.") for key in checkpoint["state_dict"]):
-        raise CheckpointError(f"{path} holds no DPCN weights (was it written by `dpcn fit`?)")
-    return checkpoint
-
-
 def load_matcher(
     ckpt_path: str | Path,
     map_location: str | torch.device = "cpu",
@@ -572,27 +484,23 @@ def load_matcher(
     trained with (``n_radii``), whatever the checkpoint stores.
     Raises :class:`CheckpointError` naming the problem for a missing, corrupt or foreign file.
     """
-    if isinstance(inference_radii, str) and inference_radii != "trained":
-        raise ValueError(f"inference_radii must be an integer >= 2 or 'trained', got {inference_radii!r}")
+    settings = inference_settings(
+        rotation_hypotheses=rotation_hypotheses,
+        hypothesis_ratio=hypothesis_ratio,
+        spectrum_window_grid=spectrum_window_grid,
+        rotation_views=rotation_views,
+        unet_dtype=unet_dtype,
+        inference_radii=inference_radii,
+        rotation_range=rotation_range,
+    )
     path = Path(ckpt_path)
-    checkpoint = _read_checkpoint(path, map_location)
+    checkpoint = read_checkpoint(path, map_location)
     try:
         module = DPCNModule(**checkpoint["hyper_parameters"])
-        module.load_state_dict(checkpoint["state_dict"])
-    except (TypeError, RuntimeError, ValueError) as error:
-        raise CheckpointError(f"checkpoint {path} does not fit this version of dpcn: {error}") from None
-    settings = {
-        "rotation_hypotheses": rotation_hypotheses,
-        "hypothesis_ratio": hypothesis_ratio,
-        "spectrum_window_grid": spectrum_window_grid,
-        "rotation_views": rotation_views,
-        "unet_dtype": unet_dtype,
-        "inference_radii": inference_radii,
-        "rotation_range": rotation_range,
-    }
-    for name, value in settings.items():
-        if value is not None:  # DPCN's setters validate; inference_radii None is the trained n_radii
-            setattr(module.model, name, None if (name, value) == ("inference_radii", "trained") else value)
+    except (TypeError, ValueError) as error:  # settings this release does not know or take
+        raise does_not_fit(path, first_sentence(error)) from None
+    load_fitting_weights(path, module, checkpoint["state_dict"])
+    set_inference_settings(module.model, **settings)
     return module.to(map_location).eval()
 
 
@@ -611,20 +519,12 @@ def load_weights(module: DPCNModule, ckpt_path: str | Path) -> DPCNModule:
     """
     path = Path(ckpt_path)
     try:
-        checkpoint = _read_checkpoint(path)
+        checkpoint = read_checkpoint(path)
     except CheckpointError as error:
         raise CheckpointError(f"init_from: {error}") from None
     weights = {k[len("model.") :]: v for k, v in checkpoint["state_dict"].items() if k.startswith("model.")}
-    own = module.model.state_dict()
-    problems = [
-        f"{key} is {tuple(weights[key].shape)} there, {tuple(value.shape)} here"
-        for key, value in own.items()
-        if key in weights and weights[key].shape != value.shape
-    ]
-    problems += [f"{key} missing" for key in own if key not in weights]
-    problems += [f"{key} unexpected" for key in weights if key not in own]
-    if problems:
-        shown = "; ".join(problems[:2]) + (f"; and {len(problems) - 2} more" if len(problems) > 2 else "")
+    shown = weight_differences(module.model.state_dict(), weights)
+    if shown is not None:
         # The settings behind the difference, from the two runs' configurations.
         there = _tuples_as_lists(checkpoint["hyper_parameters"].get("net") or {})
         here = _tuples_as_lists(module.hparams.get("net") or {})
