@@ -179,6 +179,25 @@ def test_match_in_chunks_equals_one_batch_and_still_checks_inputs():
         model.match(t, s, chunk_size=0)
 
 
+def test_match_runs_in_eval_mode_and_gives_each_module_its_own_mode_back():
+    """A training model with one U-Net held in eval (a frozen phase) matches in eval mode and
+    comes back as it was: the frozen U-Net still in eval, the rest training."""
+    model = small_dpcn().train()
+    model.rs_template.eval()
+    seen = []
+    hook = model.t_source.register_forward_hook(lambda m, _args, _out: seen.append(m.training))
+    try:
+        model.match(torch.rand(1, 1, 32, 32), torch.rand(1, 1, 32, 32))
+    finally:
+        hook.remove()
+    assert seen and not any(seen)
+    assert not any(m.training for m in model.rs_template.modules())
+    others = [m for name, m in model.named_modules() if not name.startswith("rs_template")]
+    assert all(m.training for m in others)
+    model.eval().match(torch.rand(1, 1, 32, 32), torch.rand(1, 1, 32, 32))
+    assert not any(m.training for m in model.modules())
+
+
 @pytest.mark.parametrize(("views", "chunks"), [(1, [4, 4, 1]), (2, [2, 2, 2, 2, 1]), (8, [1] * 9)])
 def test_match_on_a_cpu_runs_chunks_of_four_pairs_divided_by_the_views(views, chunks):
     """Bigger CPU chunks fall out of the cache (DPCN.match's docstring has the timings)."""

@@ -857,8 +857,11 @@ class DPCN(nn.Module):
             chunk_size = max(1, 4 // self.rotation_views) if device.type == "cpu" else source.shape[0]
         if chunk_size < 1:
             raise ValueError(f"chunk_size must be >= 1, got {chunk_size}")
-        was_training = self.training
-        self.eval()
+        # Eval mode for the call, each module's own mode back after it: a frozen U-Net of a
+        # training model stays in eval, and a model already in eval costs no walk of setattr calls.
+        training = [module for module in self.modules() if module.training]
+        for module in training:
+            module.training = False
         try:
             self.check_inputs(template, source)  # the whole batch once; chunks check shapes only
             if copies_of_one(template):  # copies of one template
@@ -870,4 +873,5 @@ class DPCN(nn.Module):
                 features = self.template_features(template) if shared else None
                 return Pose.cat([self(t, s, features).pose for t, s in zip(templates, sources, strict=True)])
         finally:
-            self.train(was_training)
+            for module in training:
+                module.training = True
