@@ -61,6 +61,32 @@ def test_model_match_reads_arrays_as_the_lightning_module_does(checkpoint, pairs
         model.match(template, template[:32])
 
 
+def test_model_match_converts_images_to_the_models_channels(checkpoint, pairs):
+    """Arrays and files reach a grey model as grey (colour converted as the data sets and
+    cv2.COLOR_RGB2GRAY convert it) and a colour model as colour (grey repeated)."""
+    import cv2
+
+    grey_model = load_model(checkpoint)
+    template, sources = pairs
+    colour = np.stack([template, np.roll(template, 5, axis=0), template[::-1]], axis=2)
+    colour_source = cv2_warp(colour, 3.0, -2.0, 20.0, 1.05)
+    grey = [cv2.cvtColor(image, cv2.COLOR_RGB2GRAY) for image in (colour, colour_source)]
+    as_grey = grey_model.match(*grey)
+    # equal up to the rounding of the two grey conversions (px, px, degrees, scale)
+    from_colour = grey_model.match(colour, colour_source)
+    torch.testing.assert_close(from_colour.as_tensor(), as_grey.as_tensor(), atol=1e-3, rtol=0)
+    with pytest.raises(ValueError, match="this model takes 1-channel images, got 3 channels"):  # tensors as given
+        grey_model.match(torch.from_numpy(colour).permute(2, 0, 1)[None], torch.rand(1, 3, 64, 64))
+    colour_model = load_model(write_checkpoint(checkpoint.parent / "colour.ckpt", *SMALL, "channels=3", seed=3))
+    repeated = np.repeat(template[..., None], 3, axis=2)
+    torch.testing.assert_close(
+        colour_model.match(template, sources[0]).as_tensor(),
+        colour_model.match(repeated, np.repeat(sources[0][..., None], 3, axis=2)).as_tensor(),
+        rtol=0,
+        atol=0,
+    )
+
+
 def test_load_model_replaces_inference_settings(checkpoint):
     model = load_model(checkpoint, rotation_hypotheses=3, hypothesis_ratio=0.5, rotation_views=4, inference_radii=24)
     assert (model.rotation_hypotheses, model.hypothesis_ratio, model.rotation_views) == (3, 0.5, 4)

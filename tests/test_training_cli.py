@@ -563,6 +563,13 @@ def test_predict_with_a_checkpoint(trained, tmp_path):
     assert [r["name"] for r in rows] == ["p0", "p1", "p2"]
     for key, value in single.items():
         assert float(rows[1][key]) == pytest.approx(value, rel=1e-4, abs=1e-4), key
+    # Colour files of the same pair on this grey model are converted to grey, as the data
+    # sets convert them (they failed with "this model takes 1-channel images, got 3 channels")
+    for folder in ("template", "source"):
+        grey = cv2.imread(str(tmp_path / folder / "p1.png"), cv2.IMREAD_UNCHANGED)
+        cv2.imwrite(str(tmp_path / folder / "c1.png"), np.repeat(grey[..., None], 3, axis=2))
+    out = dpcn("predict", "template=template/c1.png", "source=source/c1.png", ckpt, cwd=tmp_path)
+    assert json.loads(out.stdout) == pytest.approx(single, rel=1e-4, abs=1e-4)
     # A pair of another size than the model's is named, and nothing is written.
     for folder in ("template", "source"):
         cv2.imwrite(str(tmp_path / folder / "big.png"), (rng.random((48, 48)) * 255).astype(np.uint8))

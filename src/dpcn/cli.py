@@ -131,27 +131,38 @@ def _command_line() -> list[str]:
 
 def _pair_matcher(
     cfg: DictConfig, device: str
-) -> tuple[Callable[[Tensor, Tensor], Pose], Callable[[Tensor, Tensor], None]]:
-    """``predict``'s matcher of ``(B, C, H, W)`` pairs and its input check (raises ``ValueError``
-    naming the problem): the checkpoint's DPCN, or without ``ckpt_path`` the classical estimator
-    with the ``registration`` settings. Neither needs Lightning, whose import would double the
-    command's start-up."""
+) -> tuple[Callable[[Tensor, Tensor], Pose], Callable[[object, object], tuple[Tensor, Tensor]]]:
+    """``predict``'s matcher of ``(B, C, H, W)`` pairs, and what turns two loaded images into its
+    checked input (raises ``ValueError`` naming the problem): the checkpoint's DPCN, its images
+    converted to the model's channels as the data sets convert them, or without ``ckpt_path``
+    the classical estimator with the ``registration`` settings. Neither needs Lightning, whose
+    import would double the command's start-up."""
+    from .io import prepare_pair
+
     if cfg.ckpt_path:
         from .checkpoint import load_model
 
         model = load_model(cfg.ckpt_path, device, **inference_settings(cfg))
-        return model.match, model.check_inputs
-    import torch
+        match, check, channels = model.match, model.check_inputs, model.in_channels
+    else:
+        import torch
 
-    from .estimator import PhaseCorrelationEstimator
+        from .estimator import PhaseCorrelationEstimator
 
-    check_no_inference_overrides(_command_line())
-    estimator = PhaseCorrelationEstimator(**OmegaConf.to_container(cfg.registration, resolve=True)).to(device)
-    return torch.no_grad()(estimator), estimator.check_inputs
+        check_no_inference_overrides(_command_line())
+        estimator = PhaseCorrelationEstimator(**OmegaConf.to_container(cfg.registration, resolve=True)).to(device)
+        match, check, channels = torch.no_grad()(estimator), estimator.check_inputs, None
+
+    def prepare(template: object, source: object) -> tuple[Tensor, Tensor]:
+        pair = prepare_pair(template, source, device, channels)
+        check(*pair)
+        return pair
+
+    return match, prepare
 
 
 def run_predict(cfg: DictConfig) -> None:
-    from .io import load_image, prepare_pair
+    from .io import load_image
 
     if cfg.get("pairs"):
         if cfg.template or cfg.source:
@@ -162,8 +173,8 @@ def run_predict(cfg: DictConfig) -> None:
         raise CliError("predict needs template=PATH and source=PATH (or pairs=CSV)")
     device = _resolve_device(str(cfg.device))
     template, source = load_image(cfg.template), load_image(cfg.source)
-    match, _ = _pair_matcher(cfg, device)
-    print(match(*prepare_pair(template, source, device)).to_json())
+    match, prepare = _pair_matcher(cfg, device)
+    print(match(*prepare(template, source)).to_json())
 
 
 def _predict_pairs(cfg: DictConfig) -> None:
@@ -175,12 +186,12 @@ def _predict_pairs(cfg: DictConfig) -> None:
     import torch
 
     from .data.aeroground import CsvPairs
-    from .io import load_image, prepare_pair
+    from .io import load_image
 
     size = check_int("predict_batch_size", cfg.predict_batch_size, 1)
     device = _resolve_device(str(cfg.device))
     rows = CsvPairs(cfg.pairs, poses=False).rows  # names and image paths, checked up front
-    match, check = _pair_matcher(cfg, device)
+    match, prepare = _pair_matcher(cfg, device)
     out = Path(cfg.out) if cfg.out else None
     if out is not None and not out.parent.is_dir():
         raise CliError(f"out={out}: folder {out.parent} does not exist")
@@ -198,8 +209,8 @@ def _predict_pairs(cfg: DictConfig) -> None:
 
     for row in rows:
         try:
-            template, source = prepare_pair(load_image(row["template"]), load_image(row["source"]), device)
-            check(template, source)  # before its batch: the error names this pair
+            # checked before its batch: the error names this pair
+            template, source = prepare(load_image(row["template"]), load_image(row["source"]))
         except ValueError as error:  # DpcnInputError included
             raise CliError(f"{cfg.pairs}: pair {row['name']!r}: {error}") from None
         if batch and (template.shape != batch[0][1].shape or source.shape != batch[0][2].shape):

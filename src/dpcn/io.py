@@ -156,11 +156,15 @@ def to_grey(image: Tensor) -> Tensor:
     return (image * weights[None, :, None, None]).sum(dim=1, keepdim=True)
 
 
-def prepare_pair(template: object, source: object, device: torch.device | str | None = None) -> tuple[Tensor, Tensor]:
+def prepare_pair(
+    template: object, source: object, device: torch.device | str | None = None, channels: int | None = None
+) -> tuple[Tensor, Tensor]:
     """Validate and convert a (template, source) pair into matching ``(B, C, H, W)`` tensors.
 
     Channel counts that differ (grey vs colour) are reconciled by converting to grey; a
-    batch of one on either side is broadcast against the other side's batch.
+    batch of one on either side is broadcast against the other side's batch. ``channels``
+    (a model's input channels, 1 or 3) converts both as the data sets read images for such a
+    model: colour to grey (ITU-R BT.601, as OpenCV's ``COLOR_RGB2GRAY``), grey repeated.
     """
     t = to_image_tensor(template, "template")
     s = to_image_tensor(source, "source")
@@ -173,6 +177,13 @@ def prepare_pair(template: object, source: object, device: torch.device | str | 
         t, s = to_grey(t), to_grey(s)
         if t.shape[1] != s.shape[1]:
             raise DpcnInputError(f"template has {t.shape[1]} channels and source {s.shape[1]}; cannot reconcile")
+    if channels is not None and t.shape[1] != channels:
+        if channels == 1:
+            t, s = to_grey(t), to_grey(s)
+        elif channels == 3 and t.shape[1] == 1:
+            t, s = t.expand(-1, 3, -1, -1), s.expand(-1, 3, -1, -1)
+        if t.shape[1] != channels:
+            raise DpcnInputError(f"cannot convert {t.shape[1]}-channel images to the {channels} channels asked for")
     if t.shape[0] != s.shape[0] and 1 not in (t.shape[0], s.shape[0]):
         raise DpcnInputError(f"template batch {t.shape[0]} and source batch {s.shape[0]} differ")
     dtype = torch.promote_types(t.dtype, s.dtype)

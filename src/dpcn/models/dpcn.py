@@ -836,7 +836,9 @@ class DPCN(nn.Module):
         """Inference: the pose mapping ``template`` onto ``source`` (``(B,)`` fields).
 
         ``(B, C, H, W)`` tensors, moved to the model's device; or anything
-        :func:`dpcn.io.prepare_pair` reads (``(H, W)`` / ``(H, W, C)`` arrays, image paths).
+        :func:`dpcn.io.prepare_pair` reads (``(H, W)`` / ``(H, W, C)`` arrays, image paths),
+        converted to the model's channels as the data sets convert images (colour to grey for a
+        grey model, grey repeated for a colour one).
 
         Large batches run ``chunk_size`` pairs at a time (default: 4 on CPUs, ``4 //
         rotation_views`` with several views, all at once elsewhere): on a CPU the
@@ -851,7 +853,7 @@ class DPCN(nn.Module):
         """
         device = self.rs_template.head.weight.device
         if not (isinstance(template, Tensor) and template.ndim == 4):
-            template, source = prepare_pair(template, source, device)
+            template, source = prepare_pair(template, source, device, channels=self.in_channels)
         template, source = template.to(device), source.to(device)
         if chunk_size is None:
             chunk_size = max(1, 4 // self.rotation_views) if device.type == "cpu" else source.shape[0]
