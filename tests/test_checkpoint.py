@@ -112,6 +112,12 @@ def test_load_model_refuses_bad_files_in_one_line(checkpoint, tmp_path):
     assert not marker.exists()
     with pytest.raises(CheckpointError, match="checkpoint not found"):
         load_model(tmp_path / "missing.ckpt")
+    # a device this machine lacks is named as such, not called a corrupt file (torch's load fails on it)
+    with pytest.raises(ValueError, match="map_location=hpu requested but this machine cannot use it") as error:
+        load_model(checkpoint, map_location="hpu")
+    assert not isinstance(error.value, CheckpointError)
+    with pytest.raises(ValueError, match="map_location must be a device such as cpu, cuda or cuda:0, got 'gpu'"):
+        load_matcher(checkpoint, map_location="gpu")
     with pytest.raises(CheckpointError, match="is a folder, not a checkpoint file"):
         load_model(tmp_path)
     other = torch.load(checkpoint, weights_only=True)

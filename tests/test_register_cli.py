@@ -182,6 +182,8 @@ def test_cli_predict_prints_json(tmp_path, pair):
         (["template=t.png", "source=s.png", "registration.temperature=-1"], "temperature must be a finite number > 0"),
         (["template=t.png", "source=s.png", "registration.window=abc"], "window must be an integer >= 0, got 'abc'"),
         (["template=t.png", "source=s.png", "device=cuda:7"], "CUDA is not available"),
+        (["template=t.png", "source=s.png", "device=bogus"], "device must be a device such as cpu, cuda or cuda:0"),
+        (["template=t.png", "source=s.png", "device=hpu"], "device=hpu requested but this machine cannot use it"),
         # a checkpoint's inference settings do not reach the classical estimator: not silently ignored
         (["template=t.png", "source=s.png", "rotation_range=[0,180]"], "set registration.rotation_range= instead"),
         (["template=t.png", "source=s.png", "rotation_views=4"], "rotation_views= applies to a checkpoint"),

@@ -6,8 +6,9 @@ import math
 
 import numpy as np
 import pytest
+import torch
 
-from dpcn._validate import check_bool, check_int, check_number
+from dpcn._validate import check_bool, check_device, check_int, check_number
 from dpcn.data.datamodule import PairDataModule
 from dpcn.estimator import PhaseCorrelationEstimator
 from dpcn.models import DPCN
@@ -31,6 +32,33 @@ def test_check_bool_takes_only_booleans():
         with pytest.raises(ValueError) as info:
             check_bool("model.net.highpass", value)
         assert str(info.value) == f"model.net.highpass must be true or false, got {value!r}"
+
+
+@pytest.mark.parametrize(
+    ("value", "message"),
+    [
+        ("bogus", "device must be a device such as cpu, cuda or cuda:0, got 'bogus'"),
+        ("cuda:x", "device must be a device such as cpu, cuda or cuda:0, got 'cuda:x'"),
+        (3.5, "device must be a device such as cpu, cuda or cuda:0, got 3.5"),
+        ("meta", "device=meta: the meta device holds no values to compute with"),
+        ("hpu", "device=hpu requested but this machine cannot use it ("),
+        ("cuda:99", "device=cuda:99 requested but "),  # no CUDA here, or fewer devices
+    ],
+)
+def test_check_device_names_a_device_this_machine_lacks(value, message):
+    with pytest.raises(ValueError) as error:
+        check_device("device", value)
+    assert str(error.value).startswith(message) and "\n" not in str(error.value)
+
+
+def test_check_device_passes_the_devices_this_machine_has():
+    assert check_device("device", "cpu") == torch.device("cpu")
+    assert check_device("map_location", torch.device("cpu")) == torch.device("cpu")
+    if torch.cuda.is_available():
+        assert check_device("device", "cuda:0") == torch.device("cuda:0")
+    else:
+        with pytest.raises(ValueError, match="device=cuda requested but CUDA is not available"):
+            check_device("device", "cuda")
 
 
 def test_check_number_ranges():

@@ -11,7 +11,7 @@ import math
 import numbers
 from collections.abc import Sequence
 
-__all__ = ["check_bool", "check_int", "check_ints", "check_number", "check_sequence"]
+__all__ = ["check_bool", "check_device", "check_int", "check_ints", "check_number", "check_sequence"]
 
 
 def check_bool(name: str, value: object) -> bool:
@@ -23,6 +23,34 @@ def check_bool(name: str, value: object) -> bool:
     if type(value).__name__ not in ("bool", "bool_"):
         raise ValueError(f"{name} must be true or false, got {value!r}")
     return bool(value)
+
+
+def check_device(name: str, value: object) -> object:
+    """``value`` (a device name such as ``cpu``, ``cuda:1``, or a ``torch.device``) as a
+    ``torch.device`` this machine has; ``ValueError`` naming ``name`` otherwise. torch would
+    say so only when the first tensor moves, deep in a load or a match, or call a checkpoint
+    mapped to a missing GPU corrupt."""
+    import torch
+
+    try:
+        device = torch.device(value)
+    except (RuntimeError, TypeError, ValueError):
+        raise ValueError(f"{name} must be a device such as cpu, cuda or cuda:0, got {value!r}") from None
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError(f"{name}={value} requested but CUDA is not available")
+    if device.type == "cuda" and device.index is not None and device.index >= torch.cuda.device_count():
+        raise ValueError(f"{name}={value} requested but this machine has {torch.cuda.device_count()} CUDA device(s)")
+    if device.type == "meta":
+        raise ValueError(f"{name}={value}: the meta device holds no values to compute with")
+    if device.type == "mps" and not torch.backends.mps.is_available():
+        raise ValueError(f"{name}={value} requested but MPS (Apple GPUs) is not available")
+    if device.type not in ("cpu", "cuda", "mps"):
+        try:
+            torch.empty(0, device=device)
+        except Exception as error:  # backends fail as they may: RuntimeError, AssertionError, ImportError
+            reason = " ".join(str(error).split()).split(". ")[0]
+            raise ValueError(f"{name}={value} requested but this machine cannot use it ({reason})") from None
+    return device
 
 
 def check_int(name: str, value: object, low: int | None = None) -> int:

@@ -18,6 +18,7 @@ from typing import Any
 
 import torch
 
+from ._validate import check_device
 from .models.dpcn import DPCN
 
 __all__ = [
@@ -107,6 +108,8 @@ def read_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
     for a missing, corrupt or foreign file. The archive's CRCs are checked first (a damaged
     tensor would otherwise load as wrong weights), and only tensors and plain values are read:
     no code in the file runs."""
+    if isinstance(map_location, (str, torch.device)):  # else a mapping or function for torch.load
+        check_device("map_location", map_location)
     path = checkpoint_file(path)
     unreadable = f"cannot read checkpoint {path} (corrupt or not a torch file)"
     damaged = _damaged_member(path)

@@ -83,10 +83,14 @@ def config_dir() -> Path:
 def _resolve_device(name: str) -> str:
     import torch
 
+    from ._validate import check_device
+
     if name == "auto":
         return "cuda" if torch.cuda.is_available() else "cpu"
-    if name.startswith("cuda") and not torch.cuda.is_available():
-        raise CliError(f"device={name} requested but CUDA is not available")
+    try:
+        check_device("device", name)
+    except ValueError as error:
+        raise CliError(str(error)) from None
     return name
 
 
