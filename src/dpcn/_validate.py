@@ -10,6 +10,10 @@ from __future__ import annotations
 import math
 import numbers
 from collections.abc import Sequence
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    import torch
 
 __all__ = ["check_bool", "check_device", "check_int", "check_ints", "check_number", "check_sequence"]
 
@@ -25,12 +29,12 @@ def check_bool(name: str, value: object) -> bool:
     return bool(value)
 
 
-def check_device(name: str, value: object) -> object:
+def check_device(name: str, value: object) -> torch.device:
     """``value`` (a device name such as ``cpu``, ``cuda:1``, or a ``torch.device``) as a
     ``torch.device`` this machine has; ``ValueError`` naming ``name`` otherwise. torch would
     say so only when the first tensor moves, deep in a load or a match, or call a checkpoint
     mapped to a missing GPU corrupt."""
-    import torch
+    import torch  # here, not at the top: these checks sit below everything and load fast
 
     try:
         device = torch.device(value)

@@ -82,6 +82,7 @@ def _unreadable_reason(path: Path, error: Exception) -> str:
 
 
 def first_sentence(error: Exception) -> str:
+    """An exception's message up to its first full stop, on one line (at most 160 characters)."""
     text = " ".join(str(error).split()) or type(error).__name__
     return text.split(". ")[0].rstrip(".")[:160]
 
