@@ -23,6 +23,7 @@ __all__ = [
     "summarize",
     "format_table",
     "write_csv",
+    "read_curve_csv",
     "write_curve_csv",
     "write_pairs_csv",
     "thresholds_for",
@@ -141,6 +142,33 @@ def write_curve_csv(path: str | Path, curve: Sequence[tuple[str, float, float]])
         writer.writerow(["component", "threshold", "acc"])
         writer.writerows((name, f"{limit:g}", f"{acc:.4f}") for name, limit, acc in curve)
     return path
+
+
+def read_curve_csv(path: str | Path) -> list[tuple[str, float, float]]:
+    """The rows of an ``accuracy_<stage>.csv`` (:func:`write_curve_csv`): ``(component,
+    threshold, Acc in %)``. ``ValueError`` naming the file and the row for anything else."""
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"accuracy curve not found: {path}")
+    with path.open(newline="") as f:
+        reader = csv.reader(f)
+        header = next(reader, None)
+        if header != ["component", "threshold", "acc"]:
+            raise ValueError(f"{path}: not an accuracy curve (header {header}, expected component,threshold,acc)")
+        rows = []
+        for line, row in enumerate(reader, start=2):
+            try:
+                name, limit, acc = row
+                value = (name, float(limit), float(acc))
+            except ValueError:
+                raise ValueError(f"{path}, row {line}: expected component,threshold,acc, got {row}") from None
+            if name not in COMPONENTS or not (math.isfinite(value[1]) and 0.0 <= value[2] <= 100.0):
+                expected = f"a component of {', '.join(COMPONENTS)}, a finite threshold and an Acc in [0, 100]"
+                raise ValueError(f"{path}, row {line}: expected {expected}, got {row}")
+            rows.append(value)
+    if not rows:
+        raise ValueError(f"{path}: no rows")
+    return rows
 
 
 def write_pairs_csv(
