@@ -49,10 +49,11 @@ def plot(curves: list[tuple[str, list[tuple[str, float, float]]]], out: Path, ti
         ax.set_ylim(0, 101)
         ax.grid(alpha=0.3)
     axes[0][0].set_ylabel("Acc (%)")
-    axes[0][-1].legend(loc="lower right", fontsize="small")
+    handles, labels = axes[0][0].get_legend_handles_labels()
+    figure.legend(handles, labels, loc="lower center", ncol=min(len(labels), 4), fontsize="small", frameon=False)
     if title:
         figure.suptitle(title)
-    figure.tight_layout()
+    figure.tight_layout(rect=(0, 0.08, 1, 1))  # room for the legend below the panels
     figure.savefig(out, dpi=110)
     plt.close(figure)
     return out
