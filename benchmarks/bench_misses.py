@@ -70,7 +70,7 @@ def wrong_turn_at_truth(model, template: torch.Tensor, source: torch.Tensor, pos
     angle, scale = pose[:, 2].to(source.dtype), pose[:, 3].to(source.dtype)
     with torch.no_grad():
         unwarped = unwarp_rotation_scale(source, angle, scale)
-        (upright, turned), _, _ = model.translation_turns(template, unwarped, angle, scale)
+        (upright, turned), _, _ = model.translation_turns(template, unwarped, angle, scale, sigma=model.inference_sigma)
     return turned.confidence >= upright.confidence
 
 

@@ -199,6 +199,19 @@ def test_log_polar_radii_per_model_config(args, radii):
     assert (net.n_radii, net.get("inference_radii")) == radii
 
 
+@pytest.mark.parametrize(
+    ("args", "sigmas"),
+    [
+        ([], (2.0, 3.0)),  # tiny blurs phase 2's surfaces more at inference than in training
+        (["data=l2d"], (2.0, None)),  # the map pairs' and paper's models as trained (not measured)
+        (["model=paper"], (2.0, None)),
+    ],
+)
+def test_phase_2_blur_per_model_config(args, sigmas):
+    net = compose_config(*args).model.net
+    assert (net.sigma, net.get("inference_sigma")) == sigmas
+
+
 def test_a_bad_dataset_value_names_its_key(tmp_path):
     dm = instantiate(compose_config("data=l2sat", f"data.root={tmp_path}", "data.dataset.min_valid=2").data)
     with pytest.raises(ValueError, match=r"^data\.dataset: min_valid must be in \[0, 1\], got 2"):

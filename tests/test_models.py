@@ -711,6 +711,38 @@ def test_inference_radii_change_inference_only_and_recover_an_opencv_pose():
     assert model.inference_radii is None
 
 
+def test_inference_sigma_blurs_phase_2_at_inference_only():
+    """inference_sigma replaces sigma where the pose is found (forward, match), not in what
+    training calls (translation_turns without it): a model with sigma 2 and inference_sigma 3.5
+    infers as one with sigma 3.5 and trains as one with sigma 2."""
+    torch.manual_seed(4)
+    image = photo("astronaut", (64, 64))
+    template = torch.from_numpy(image)[None, None]
+    source = torch.from_numpy(cv2_warp(image, 5.3, -3.7, 25.0, 1.0))[None, None]
+    mixed = small_dpcn(image_size=(64, 64), input_skip=True, sigma=2.0, inference_sigma=3.5).eval()
+    broad = small_dpcn(image_size=(64, 64), input_skip=True, sigma=3.5).eval()
+    narrow = small_dpcn(image_size=(64, 64), input_skip=True, sigma=2.0).eval()
+    broad.load_state_dict(mixed.state_dict())
+    narrow.load_state_dict(mixed.state_dict())
+    with torch.no_grad():
+        pose = mixed.match(template, source).as_tensor()
+        torch.testing.assert_close(pose, broad.match(template, source).as_tensor(), rtol=0, atol=0)
+        assert not torch.equal(pose, narrow.match(template, source).as_tensor())  # the blur moves the peak
+        args = (template, source, torch.tensor([25.0]), torch.tensor([1.0]))
+        trained = mixed.translation_turns(*args)[0][0]
+        torch.testing.assert_close(trained.tx, narrow.translation_turns(*args)[0][0].tx, rtol=0, atol=0)
+        torch.testing.assert_close(
+            mixed.translation_turns(*args, sigma=3.5)[0][0].tx, broad.translation_turns(*args)[0][0].tx
+        )
+    assert abs(float(pose[0, 0]) - 5.3) < 0.5 and abs(float(pose[0, 1]) + 3.7) < 0.5  # an OpenCV pose recovered
+    assert small_dpcn().inference_sigma is None
+    for bad in (-1.0, "abc", float("nan"), True):
+        with pytest.raises(ValueError, match="inference_sigma must be a finite number >= 0"):
+            mixed.inference_sigma = bad
+    mixed.inference_sigma = None
+    torch.testing.assert_close(mixed.match(template, source).as_tensor(), narrow.match(template, source).as_tensor())
+
+
 def test_spectrum_window_grid_recovers_an_opencv_pose_with_a_large_shift():
     torch.manual_seed(0)
     image = photo("astronaut", (128, 128))

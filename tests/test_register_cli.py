@@ -187,6 +187,7 @@ def test_cli_predict_prints_json(tmp_path, pair):
         # a checkpoint's inference settings do not reach the classical estimator: not silently ignored
         (["template=t.png", "source=s.png", "rotation_range=[0,180]"], "set registration.rotation_range= instead"),
         (["template=t.png", "source=s.png", "rotation_views=4"], "rotation_views= applies to a checkpoint"),
+        (["template=t.png", "source=s.png", "inference_sigma=3"], "set registration.sigma= instead"),
     ],
 )
 def test_cli_predict_errors_are_one_line(tmp_path, pair, args, message):

@@ -449,6 +449,7 @@ def test_validate_and_test_print_the_paper_table(trained, tmp_path):
         "rotation_views=4",
         "unet_dtype=bfloat16",
         "inference_radii=16",
+        "inference_sigma=2.5",
     ]
     out = dpcn("test", *SMALL, f"ckpt_path={ckpt}", *inference, f"hydra.run.dir={tmp_path / 'k'}", cwd=tmp_path)
     assert "acc_rot@1" in out.stdout and (tmp_path / "k" / "metrics_test.csv").is_file()
@@ -464,6 +465,7 @@ def test_validate_and_test_print_the_paper_table(trained, tmp_path):
         rotation_views=8,
         unet_dtype="bfloat16",
         inference_radii=24,
+        inference_sigma=4.5,
     )
     model = matcher.model
     assert (model.rotation_hypotheses, model.spectrum_window_grid, model.rotation_views) == (3, 5, 8)
@@ -471,6 +473,7 @@ def test_validate_and_test_print_the_paper_table(trained, tmp_path):
     assert (model.hypothesis_ratio, stored.rotation_hypotheses, stored.hypothesis_ratio) == (0.5, 2, 0.7)
     assert model.unet_dtype == "bfloat16" and load_matcher(ckpt).model.unet_dtype == "float32"
     assert model.inference_radii == 24 and load_matcher(ckpt).model.inference_radii == 128  # tiny's, stored
+    assert model.inference_sigma == 4.5 and load_matcher(ckpt).model.inference_sigma == 3.0  # tiny's, stored
     assert load_matcher(ckpt, inference_radii="trained").model.inference_radii is None  # n_radii
     with pytest.raises(ValueError, match="inference_radii must be an integer >= 2 or 'trained', got 'all'"):
         load_matcher(ckpt, inference_radii="all")
@@ -482,6 +485,7 @@ def test_validate_and_test_print_the_paper_table(trained, tmp_path):
         ("unet_dtype=float16", "unet_dtype must be one of float32, bfloat16, got 'float16'"),
         ("inference_radii=1", "inference_radii must be an integer >= 2 or None, got 1"),
         ("inference_radii=all", "inference_radii must be an integer >= 2 or 'trained', got 'all'"),
+        ("inference_sigma=-1", "inference_sigma must be a finite number >= 0, got -1"),
         ("rotation_range=[180,0]", "rotation_range must be [low, high] in degrees with 0 < high - low <= 360"),
     ]:
         run = tmp_path / setting.split("=")[0]

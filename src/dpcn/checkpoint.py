@@ -40,6 +40,7 @@ INFERENCE_SETTINGS = (  # DPCN's inference-only settings that a loader may repla
     "rotation_views",
     "unet_dtype",
     "inference_radii",
+    "inference_sigma",
     "rotation_range",
 )
 
@@ -208,6 +209,7 @@ def load_model(
     rotation_views: int | None = None,
     unet_dtype: str | None = None,
     inference_radii: int | str | None = None,
+    inference_sigma: float | None = None,
     rotation_range: tuple[float, float] | list[float] | None = None,
 ) -> DPCN:
     """The trained :class:`~dpcn.models.DPCN` of a ``dpcn fit`` checkpoint, in eval mode on
@@ -226,6 +228,7 @@ def load_model(
         rotation_views=rotation_views,
         unet_dtype=unet_dtype,
         inference_radii=inference_radii,
+        inference_sigma=inference_sigma,
         rotation_range=rotation_range,
     )
     path = Path(ckpt_path)

@@ -97,12 +97,13 @@ def _resolve_device(name: str) -> str:
 # Top-level keys that override a checkpoint's inference settings (validate/test/predict; fit ignores them).
 INFERENCE_KEYS = (
     "rotation_hypotheses", "hypothesis_ratio", "spectrum_window_grid", "rotation_views", "unet_dtype",
-    "inference_radii", "rotation_range",
+    "inference_radii", "inference_sigma", "rotation_range",
 )  # fmt: skip
 
 
 # The classical estimator's settings of the same name, where it has one.
 CLASSICAL_EQUIVALENTS = {
+    "inference_sigma": "registration.sigma",
     "rotation_range": "registration.rotation_range",
     "spectrum_window_grid": "registration.spectrum_window_grid",
 }

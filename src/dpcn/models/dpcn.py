@@ -230,6 +230,10 @@ class DPCN(nn.Module):
             ``n_radii``: the U-Nets come before the log-polar resampling, so their weights do
             not depend on it. Half the radii halve the cost of phase 1's log-polar maps and
             their DFTs (README, Benchmarks).
+        inference_sigma: at inference, the blur (pixels) of phase 2's correlation surfaces
+            before their peak is located, instead of ``sigma`` (``None``: ``sigma``); training
+            keeps ``sigma``. A broader blur than the training's locates the peak more
+            steadily (`tiny`: 3 for a training 2; README, Benchmarks).
         template_relief: with a gain ``g`` (``None``: off), the template's U-Nets (both
             phases) take the image and its :func:`local_relief` (gain ``g``, ``sigma`` 4 px
             at full size) side by side, twice the input channels: for templates whose shared
@@ -287,6 +291,7 @@ class DPCN(nn.Module):
         spectrum_window_step: float = 0.125,
         rotation_views: int = 1,
         inference_radii: int | None = None,
+        inference_sigma: float | None = None,
         template_relief: float | None = None,
         texture_energy: str | None = None,
         rotation_scale_correlation: str = "joint",
@@ -374,6 +379,7 @@ class DPCN(nn.Module):
         self.spectrum_window_step = float(spectrum_window_step)
         self.rotation_views = rotation_views
         self.inference_radii = inference_radii
+        self.inference_sigma = inference_sigma
         self.rotation_range = rotation_range
         if isinstance(train_temperature, (int, float, str)):
             train_temperature = (train_temperature, train_temperature)
@@ -438,6 +444,15 @@ class DPCN(nn.Module):
             if isinstance(value, bool) or not isinstance(value, int) or value < 2:
                 raise ValueError(f"inference_radii must be an integer >= 2 or None, got {value!r}")
         self._inference_radii = value
+
+    @property
+    def inference_sigma(self) -> float | None:
+        """Blur (pixels) of phase 2's surfaces at inference (``None``: ``sigma``; settable)."""
+        return self._inference_sigma
+
+    @inference_sigma.setter
+    def inference_sigma(self, value: float | None) -> None:
+        self._inference_sigma = None if value is None else check_number("inference_sigma", value, low=0.0)
 
     @property
     def rotation_range(self) -> tuple[float, float] | None:
@@ -636,6 +651,7 @@ class DPCN(nn.Module):
         scale: Tensor,
         half_turn_too: bool = True,
         template_features: Tensor | None = None,
+        sigma: float | None = None,
     ) -> tuple[list[Translation], Tensor, tuple[Tensor, ...]]:
         """Phase 2 per half-turn hypothesis, without choosing: the source as un-warped and,
         with ``half_turn_too``, turned by half a turn (its own source U-Net pass: a CNN is not
@@ -646,6 +662,7 @@ class DPCN(nn.Module):
             unwarped_source, angle, scale: ``(B * K, C, H, W)``, ``(B * K,)``, ``(B * K,)``,
                 ``K`` candidates per pair, pair-major.
             template_features: the template's phase-2 features if already computed.
+            sigma: the surfaces' blur in pixels (``None``: the model's ``sigma``).
 
         Returns:
             one :class:`Translation` ``(B * K,)`` per hypothesis (upright first; the second's
@@ -657,7 +674,8 @@ class DPCN(nn.Module):
         turns = (unwarped_source, half_turn(unwarped_source)) if half_turn_too else (unwarped_source,)
         fs_all = self.t_source(torch.cat(turns)).chunk(len(turns))
         ft_k = ft.repeat_interleave(k, dim=0) if k > 1 else ft
-        kw = dict(resolve_180=False, sigma=self.sigma, temperature=self.temperature, window=self.window)
+        blur = self.sigma if sigma is None else sigma
+        kw = dict(resolve_180=False, sigma=blur, temperature=self.temperature, window=self.window)
         results = [estimate_translation(ft_k, fs, angle + 180.0 * turn, scale, **kw) for turn, fs in enumerate(fs_all)]
         return results, ft, fs_all
 
@@ -671,6 +689,7 @@ class DPCN(nn.Module):
         valid: Tensor | None = None,
         rotation_range: tuple[float, float] | None = None,
         template_features: Tensor | None = None,
+        sigma: float | None = None,
     ) -> tuple[Translation, dict[str, Tensor], Tensor]:
         """Phase 2 on sources already un-warped by ``angle``/``scale``; the strongest
         translation peak over the candidates wins.
@@ -685,6 +704,7 @@ class DPCN(nn.Module):
             rotation_range: with ``resolve_180``, a turn whose angle lies further outside this
                 range than the other turn's cannot win.
             template_features: the template's phase-2 features if already computed.
+            sigma: the surfaces' blur in pixels (``None``: the model's ``sigma``).
 
         Returns:
             the winning :class:`Translation` ``(B,)``, the phase-2 features of the winner, and
@@ -695,7 +715,7 @@ class DPCN(nn.Module):
         if k < 1 or unwarped_source.shape[0] != batch * k:
             raise ValueError(f"{unwarped_source.shape[0]} un-warped sources for {batch} templates (need B * K)")
         results, ft, fs_all = self.translation_turns(
-            template, unwarped_source, angle, scale, resolve_180, template_features
+            template, unwarped_source, angle, scale, resolve_180, template_features, sigma
         )
 
         def candidates(values: list[Tensor]) -> Tensor:  # (B * K, ...) per turn -> (B, K * turns, ...)
@@ -772,8 +792,9 @@ class DPCN(nn.Module):
                 candidates = source[rows].repeat_interleave(n, dim=0) if n > 1 else source[rows]
                 a, s = angle[rows, first:stop].flatten(), rs.candidate_scale[rows, first:stop].flatten()
                 unwarped = unwarp_rotation_scale(candidates, a, s)
+                allowed, blur = valid[rows, first:stop], self.inference_sigma
                 tr, t_features, choice = self.translation(
-                    template[rows], unwarped, a, s, not settled, valid[rows, first:stop], known, ft
+                    template[rows], unwarped, a, s, not settled, allowed, known, ft, blur
                 )
                 picked = torch.arange(len(choice), device=choice.device)
                 return tr, t_features, choice + first, unwarped.view(-1, n, *unwarped.shape[1:])[picked, choice]

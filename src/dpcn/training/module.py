@@ -473,12 +473,13 @@ def load_matcher(
     rotation_views: int | None = None,
     unet_dtype: str | None = None,
     inference_radii: int | str | None = None,
+    inference_sigma: float | None = None,
     rotation_range: tuple[float, float] | list[float] | None = None,
 ) -> DPCNModule:
     """Load a DPCN checkpoint ready for ``.match(template, source) -> Pose`` (eval mode).
 
     ``rotation_hypotheses``, ``hypothesis_ratio``, ``spectrum_window_grid``, ``rotation_views``, ``unet_dtype``,
-    ``inference_radii`` and ``rotation_range`` replace the checkpoint's inference settings of
+    ``inference_radii``, ``inference_sigma`` and ``rotation_range`` replace the checkpoint's inference settings of
     those names (see :class:`~dpcn.models.DPCN`); ``None`` keeps them (``rotation_range=[-180,
     180]`` is the full circle, no prior). ``inference_radii="trained"`` infers with the radii the model was
     trained with (``n_radii``), whatever the checkpoint stores.
@@ -491,6 +492,7 @@ def load_matcher(
         rotation_views=rotation_views,
         unet_dtype=unet_dtype,
         inference_radii=inference_radii,
+        inference_sigma=inference_sigma,
         rotation_range=rotation_range,
     )
     path = Path(ckpt_path)
