@@ -464,37 +464,19 @@ class ClassicalModule(_EvaluationMixin, L.LightningModule):
         return None
 
 
-def load_matcher(
-    ckpt_path: str | Path,
-    map_location: str | torch.device = "cpu",
-    rotation_hypotheses: int | None = None,
-    hypothesis_ratio: float | None = None,
-    spectrum_window_grid: int | None = None,
-    rotation_views: int | None = None,
-    unet_dtype: str | None = None,
-    inference_radii: int | str | None = None,
-    inference_sigma: float | None = None,
-    rotation_range: tuple[float, float] | list[float] | None = None,
-) -> DPCNModule:
-    """Load a DPCN checkpoint ready for ``.match(template, source) -> Pose`` (eval mode).
+def load_matcher(ckpt_path: str | Path, map_location: str | torch.device = "cpu", **settings: Any) -> DPCNModule:
+    """Load a DPCN checkpoint ready for ``.match(template, source) -> Pose`` (eval mode): the
+    Lightning module around :func:`dpcn.load_model`'s model.
 
-    ``rotation_hypotheses``, ``hypothesis_ratio``, ``spectrum_window_grid``, ``rotation_views``, ``unet_dtype``,
-    ``inference_radii``, ``inference_sigma`` and ``rotation_range`` replace the checkpoint's inference settings of
-    those names (see :class:`~dpcn.models.DPCN`); ``None`` keeps them (``rotation_range=[-180,
-    180]`` is the full circle, no prior). ``inference_radii="trained"`` infers with the radii the model was
-    trained with (``n_radii``), whatever the checkpoint stores.
+    ``settings`` are :func:`dpcn.load_model`'s inference settings (``rotation_hypotheses``,
+    ``hypothesis_ratio``, ``spectrum_window_grid``, ``rotation_views``, ``unet_dtype``,
+    ``inference_radii``, ``inference_sigma``, ``rotation_range``), which replace the
+    checkpoint's (see :class:`~dpcn.models.DPCN`); ``None`` keeps one (``rotation_range=[-180,
+    180]`` is the full circle, no prior; ``inference_radii="trained"``: the radii the model was
+    trained with, whatever the checkpoint stores).
     Raises :class:`CheckpointError` naming the problem for a missing, corrupt or foreign file.
     """
-    settings = inference_settings(
-        rotation_hypotheses=rotation_hypotheses,
-        hypothesis_ratio=hypothesis_ratio,
-        spectrum_window_grid=spectrum_window_grid,
-        rotation_views=rotation_views,
-        unet_dtype=unet_dtype,
-        inference_radii=inference_radii,
-        inference_sigma=inference_sigma,
-        rotation_range=rotation_range,
-    )
+    settings = inference_settings(**settings)  # checked before the file is read
     path = Path(ckpt_path)
     checkpoint = read_checkpoint(path, map_location)
     try:
