@@ -2,7 +2,8 @@
 
 Commands: ``fit`` (train DPCN), ``validate``/``test`` (the paper's metrics of a checkpoint or
 of ``model=classical``), ``predict`` (one pair -> JSON pose; ``pairs=CSV`` -> a CSV of poses). The configuration tree is
-``conf/`` at the repository root (``conf/config.yaml``); every value there can be overridden.
+``conf/`` at the repository root (``conf/config.yaml``; a wheel carries it as ``dpcn/conf``); every
+value there can be overridden.
 This module only parses, builds (``hydra.utils.instantiate``) and reports: the work is done
 by :mod:`dpcn.training`, :mod:`dpcn.data` and :mod:`dpcn.registration`.
 """
@@ -72,12 +73,16 @@ class RunInterrupted(Exception):
 
 
 def config_dir() -> Path:
-    """The ``conf/`` tree: the repository's (source checkout, editable install)."""
+    """The ``conf/`` tree: the repository's (source checkout, editable install), else the copy
+    that a built wheel carries as ``dpcn/conf`` (``pip install .``)."""
     here = Path(__file__).resolve()
     for candidate in (here.parents[2] / "conf", here.parent / "conf"):
         if (candidate / "config.yaml").is_file():
             return candidate
-    raise CliError("cannot find the configuration tree conf/config.yaml (install dpcn with `pip install -e .`)")
+    raise CliError(
+        f"cannot find the configuration tree: neither {here.parents[2] / 'conf'} nor {here.parent / 'conf'} "
+        "holds config.yaml (reinstall dpcn: `pip install -e .` in a checkout, or `pip install .`)"
+    )
 
 
 def _resolve_device(name: str) -> str:
