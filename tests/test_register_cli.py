@@ -15,7 +15,7 @@ import torch
 import dpcn
 from dpcn.io import DpcnInputError, load_image, prepare_pair, read_image, to_image_tensor
 
-from .conftest import angle_error, cv2_warp, photo
+from .conftest import CONF, angle_error, cv2_warp, photo
 
 TRUTH = (11.0, -23.5, 141.0, 0.93)
 
@@ -282,3 +282,20 @@ def test_cli_unknown_key_and_command(tmp_path):
     assert out.returncode == 2 and "unknown command 'frobnicate'" in out.stderr
     out = run_cli("--help", cwd=tmp_path)
     assert out.returncode == 0 and "predict" in out.stdout
+
+
+def test_cli_help_lists_every_config_of_each_group(tmp_path):
+    """The usage's group options come from conf/, so a new data, model or experiment config is
+    listed (the default first) and none that is gone."""
+    out = run_cli("--help", cwd=tmp_path)
+    assert out.returncode == 0, out.stderr
+    listed = {}
+    for token in out.stdout.replace("[", " ").replace("]", " ").split():
+        group, _, options = token.partition("=")
+        if group in ("data", "model", "loss", "trainer", "experiment") and "|" in options:
+            listed.setdefault(group, options.split("|"))  # fit's line comes first
+    for group in ("data", "model", "loss", "trainer", "experiment"):
+        expected = {p.stem for p in (CONF / group).glob("*.yaml")} - {"classical"}
+        assert sorted(listed[group]) == sorted(expected), group
+    assert listed["data"][0] == "sim_heterogeneous" and listed["model"][0] == "tiny"
+    assert "paper_table1" in listed["experiment"] and "tiny_full_s2d" in listed["model"]

@@ -34,12 +34,12 @@ log = logging.getLogger("dpcn")
 
 COMMANDS = ("fit", "validate", "test", "predict", "make-data")
 
-USAGE = f"""usage: python -m dpcn <command> [key=value ...] [-m] [--cfg job]
+USAGE = """usage: python -m dpcn <command> [key=value ...] [-m] [--cfg job]
 
-commands: {", ".join(COMMANDS)}
-  fit [data=sim_heterogeneous|sim_homogeneous|sim_dynamic|l2d|l2sat|s2d|s2sat|csv]
-      [model=tiny|tiny_full|paper] [loss=default|l1|kl|paper] [trainer=auto|cpu|gpu|ddp]
-      [experiment=quick|finetune_translation] [ckpt_path=.../last.ckpt to resume]
+commands: {commands}
+  fit [data={data}]
+      [model={model}] [loss={loss}] [trainer={trainer}]
+      [experiment={experiment}] [ckpt_path=.../last.ckpt to resume]
       [init_from=model.ckpt to start from its weights] [model.freeze=[rotation_scale]]
       trains DPCN; run directory outputs/fit/<time>/ (checkpoints/, metrics.csv, .hydra/)
   validate|test ckpt_path=model.ckpt [data=...]     (or model=classical, no checkpoint)
@@ -56,6 +56,27 @@ commands: {", ".join(COMMANDS)}
 
 Any key of conf/config.yaml can be overridden with key=value (Hydra syntax).
 Errors are one line on stderr (exit status 2); DPCN_DEBUG=1 shows the traceback."""
+GROUPS = ("data", "model", "loss", "trainer", "experiment")  # the config groups the usage lists
+
+
+def usage() -> str:
+    """The help text, each config group's options read from ``conf/`` (the default first), so
+    that a new data, model or experiment config appears in it."""
+    try:
+        conf = config_dir()
+    except CliError:
+        return USAGE.format(commands=", ".join(COMMANDS), **{group: "..." for group in GROUPS})
+    defaults: dict[str, str] = {}
+    for entry in OmegaConf.load(conf / "config.yaml").get("defaults", []):
+        if isinstance(entry, DictConfig):
+            defaults.update({str(k): str(v) for k, v in entry.items()})
+    options = {}
+    for group in GROUPS:
+        # model=classical is not trained: it is validate/test/predict's classical estimator
+        names = sorted(p.stem for p in (conf / group).glob("*.yaml") if (group, p.stem) != ("model", "classical"))
+        first = [name for name in names if name == defaults.get(group)]
+        options[group] = "|".join(first + [name for name in names if name not in first])
+    return USAGE.format(commands=", ".join(COMMANDS), **options)
 
 
 class CliError(Exception):
@@ -718,7 +739,7 @@ def _is_hydra_key(key: str) -> bool:
 def main(argv: list[str] | None = None) -> None:
     argv = list(sys.argv[1:] if argv is None else argv)
     if not argv or argv[0] in ("-h", "--help", "help"):
-        print(USAGE)
+        print(usage())
         return
     if (
         argv[0] not in COMMANDS
