@@ -93,6 +93,10 @@ def test_load_model_replaces_inference_settings(checkpoint):
     assert model.inference_radii == 24
     assert load_model(checkpoint, inference_radii="trained").inference_radii is None
     assert load_model(checkpoint, rotation_range=[0, 180]).rotation_range == (0.0, 180.0)
+    assert load_model(checkpoint, scale_range=[0.8, 1.25]).scale_range == (0.8, 1.25)
+    assert load_model(checkpoint).scale_range == (0.5, 2.0)  # tiny's, stored
+    with pytest.raises(ValueError, match=r"scale_range must be \[low, high\] with 0 < low <= 1 <= high, got \[1.2, 2"):
+        load_model(checkpoint, scale_range=[1.2, 2.0])
     with pytest.raises(ValueError, match="inference_radii must be an integer >= 2 or 'trained', got 'all'"):
         load_model(checkpoint, inference_radii="all")
     with pytest.raises(ValueError, match="rotation_views must be an integer from 1 to 8, got 9"):

@@ -894,3 +894,22 @@ def test_texture_energy_from_the_real_config(setting, channels):
     net = module.model
     assert (net.rs_template.stem[0].in_channels, net.rs_source.stem[0].in_channels) == channels
     assert net.t_template.stem[0].in_channels == net.t_source.stem[0].in_channels == 1
+
+
+def test_scale_range_bounds_phase_1s_search_on_a_loaded_model():
+    """``scale_range`` is settable after construction (a scale prior at inference, as the CLI's
+    ``scale_range=`` sets it): a range without the true scale keeps the estimate inside it."""
+    model = DPCN(base_channels=4, depth=2, image_size=(128, 128), n_angles=128, n_radii=128, input_skip=True).eval()
+    template = photo("camera", (128, 128))
+    source = cv2_warp(template, 3.0, -2.0, 20.0, 1.3)
+    pair = (torch.from_numpy(template)[None, None], torch.from_numpy(source)[None, None])
+    with torch.no_grad():
+        found = model(*pair).pose
+        model.scale_range = [0.9, 1.1]
+        bounded = model(*pair).pose
+    assert abs(float(found.scale) - 1.3) < 0.01 and angle_error(found.angle, 20.0) < 0.5
+    assert model.scale_range == (0.9, 1.1) and 0.9 - 0.03 <= float(bounded.scale) <= 1.1 + 0.03
+    with pytest.raises(ValueError, match=r"scale_range must be \[low, high\] with 0 < low <= 1 <= high"):
+        model.scale_range = (1.1, 2.0)
+    with pytest.raises(ValueError, match=r"scale_range must be a \[low, high\] pair, got \[0.9\]"):
+        model.scale_range = [0.9]

@@ -188,6 +188,7 @@ def test_cli_predict_prints_json(tmp_path, pair):
         (["template=t.png", "source=s.png", "rotation_range=[0,180]"], "set registration.rotation_range= instead"),
         (["template=t.png", "source=s.png", "rotation_views=4"], "rotation_views= applies to a checkpoint"),
         (["template=t.png", "source=s.png", "inference_sigma=3"], "set registration.sigma= instead"),
+        (["template=t.png", "source=s.png", "scale_range=[0.8,1.25]"], "set registration.scale_range= instead"),
     ],
 )
 def test_cli_predict_errors_are_one_line(tmp_path, pair, args, message):

@@ -42,6 +42,7 @@ INFERENCE_SETTINGS = (  # DPCN's inference-only settings that a loader may repla
     "inference_radii",
     "inference_sigma",
     "rotation_range",
+    "scale_range",
 )
 
 
@@ -211,6 +212,7 @@ def load_model(
     inference_radii: int | str | None = None,
     inference_sigma: float | None = None,
     rotation_range: tuple[float, float] | list[float] | None = None,
+    scale_range: tuple[float, float] | list[float] | None = None,
 ) -> DPCN:
     """The trained :class:`~dpcn.models.DPCN` of a ``dpcn fit`` checkpoint, in eval mode on
     ``map_location``, without Lightning: ``load_model(path).match(template, source) -> Pose``.
@@ -230,6 +232,7 @@ def load_model(
         inference_radii=inference_radii,
         inference_sigma=inference_sigma,
         rotation_range=rotation_range,
+        scale_range=scale_range,
     )
     path = Path(ckpt_path)
     checkpoint = read_checkpoint(path, map_location)

@@ -123,7 +123,7 @@ def _resolve_device(name: str) -> str:
 # Top-level keys that override a checkpoint's inference settings (validate/test/predict; fit ignores them).
 INFERENCE_KEYS = (
     "rotation_hypotheses", "hypothesis_ratio", "spectrum_window_grid", "rotation_views", "unet_dtype",
-    "inference_radii", "inference_sigma", "rotation_range",
+    "inference_radii", "inference_sigma", "rotation_range", "scale_range",
 )  # fmt: skip
 
 
@@ -131,6 +131,7 @@ INFERENCE_KEYS = (
 CLASSICAL_EQUIVALENTS = {
     "inference_sigma": "registration.sigma",
     "rotation_range": "registration.rotation_range",
+    "scale_range": "registration.scale_range",
     "spectrum_window_grid": "registration.spectrum_window_grid",
 }
 

@@ -19,7 +19,7 @@ import kornia
 import torch
 from torch import Tensor, nn
 
-from ._validate import check_bool, check_ints, check_number
+from ._validate import check_bool, check_ints, check_number, check_sequence
 from .ops._checks import check_pair, copies_of_one, full_precision, inputs_checked
 from .ops.correlation import correlation_surface, cross_power_spectrum, phase_correlation_1d
 from .ops.logpolar import log_polar, log_polar_grid, log_radius_step
@@ -143,11 +143,10 @@ def log_polar_correlation(template: Tensor, sources: Tensor, sigma: float = 0.0,
 
 def _scale_mask(n_radii: int, step: float, scale_range: tuple[float, float] | None, device, dtype) -> Tensor | None:
     """Additive ``(1, 1, n_radii)`` mask excluding log-radius shifts outside ``scale_range``."""
+    scale_range = check_scale_range(scale_range)
     if scale_range is None:
         return None
     lo, hi = scale_range
-    if not 0 < lo <= 1 <= hi:
-        raise ValueError(f"scale_range must satisfy 0 < low <= 1 <= high, got {scale_range}")
     shifts = torch.arange(n_radii, device=device, dtype=dtype) - n_radii // 2
     scales_log = -shifts * step  # column -> ln(scale)
     ok = (scales_log >= math.log(lo) - step) & (scales_log <= math.log(hi) + step)
@@ -194,6 +193,19 @@ def check_views(views: int, size: Sequence[int] | None = None) -> int:
             f"rotation_views > 2 turns the images by quarter turns: needs square images, got {size[0]}x{size[1]}"
         )
     return views
+
+
+def check_scale_range(scale_range: object) -> tuple[float, float] | None:
+    """Validate the scales stage 1 searches, ``[low, high]`` (source size over template size):
+    two finite numbers with ``0 < low <= 1 <= high``; ``None`` (every scale the log-polar maps
+    hold) passes."""
+    if scale_range is None:
+        return None
+    check_sequence("scale_range", scale_range, 2, "a [low, high] pair")
+    low, high = (check_number("scale_range", v, low=0.0, low_open=True) for v in scale_range)
+    if not low <= 1.0 <= high:
+        raise ValueError(f"scale_range must be [low, high] with 0 < low <= 1 <= high, got {scale_range!r}")
+    return low, high
 
 
 def check_rotation_range(rotation_range: object) -> tuple[float, float] | None:
@@ -529,8 +541,7 @@ class PhaseCorrelationEstimator(nn.Module):
             check_number(name, value, low=0.0)
         for name, value in (("temperature", temperature), ("rotation_temperature", rotation_temperature)):
             check_number(name, value, low=0.0, low_open=True)
-        if scale_range is not None:
-            _scale_mask(4, 1.0, tuple(scale_range), "cpu", torch.float32)  # validates the range
+        scale_range = check_scale_range(scale_range)
         self.rotation_scale_options = dict(
             n_angles=n_angles,
             n_radii=n_radii,
@@ -541,7 +552,7 @@ class PhaseCorrelationEstimator(nn.Module):
             sigma=rotation_sigma,
             temperature=rotation_temperature,
             window=window,
-            scale_range=None if scale_range is None else tuple(scale_range),
+            scale_range=scale_range,
             relative=True,
             correlation=rotation_scale_correlation,
             radius_window=radius_window,

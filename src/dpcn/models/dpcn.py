@@ -40,6 +40,7 @@ from ..estimator import (
     Translation,
     check_rotation_range,
     check_rotation_scale_correlation,
+    check_scale_range,
     check_views,
     choose_half_turn,
     dihedral_views,
@@ -205,7 +206,10 @@ class DPCN(nn.Module):
             temperature), per phase ``(rotation_scale, translation)``; correlation values
             are in ``[-1, 1]``.
         learnable_temperature: learn the two training temperatures.
-        scale_range: scales searched in phase 1.
+        scale_range: the scales phase 1 searches, ``[low, high]`` with ``low <= 1 <= high``
+            (``None``: every scale of the log-polar maps), in training and at inference;
+            settable on a loaded model, e.g. to the range a robot's and an aerial map's
+            resolutions allow (a scale prior, like ``rotation_range``).
         rotation_hypotheses: phase-1 peaks (rotation/scale hypotheses) that phase 2 checks at
             inference; each costs one more pair of phase-2 source U-Net passes. Training is
             unaffected (phase 1 learns from its own surface).
@@ -368,9 +372,6 @@ class DPCN(nn.Module):
         self.sigma, self.rotation_sigma = sigma, rotation_sigma
         self.temperature, self.rotation_temperature = temperature, rotation_temperature
         self.window = window
-        if scale_range is not None:
-            check_sequence("scale_range", scale_range, 2, "a (low, high) pair")
-            scale_range = tuple(check_number("scale_range", v, low=0.0, low_open=True) for v in scale_range)
         self.scale_range = scale_range
         self.rotation_hypotheses = rotation_hypotheses
         self.hypothesis_ratio = hypothesis_ratio
@@ -453,6 +454,16 @@ class DPCN(nn.Module):
     @inference_sigma.setter
     def inference_sigma(self, value: float | None) -> None:
         self._inference_sigma = None if value is None else check_number("inference_sigma", value, low=0.0)
+
+    @property
+    def scale_range(self) -> tuple[float, float] | None:
+        """The scales ``[low, high]`` phase 1 searches, or ``None`` for all (settable on a
+        loaded model)."""
+        return self._scale_range
+
+    @scale_range.setter
+    def scale_range(self, value: tuple[float, float] | list[float] | None) -> None:
+        self._scale_range = check_scale_range(value)
 
     @property
     def rotation_range(self) -> tuple[float, float] | None:

@@ -470,10 +470,10 @@ def load_matcher(ckpt_path: str | Path, map_location: str | torch.device = "cpu"
 
     ``settings`` are :func:`dpcn.load_model`'s inference settings (``rotation_hypotheses``,
     ``hypothesis_ratio``, ``spectrum_window_grid``, ``rotation_views``, ``unet_dtype``,
-    ``inference_radii``, ``inference_sigma``, ``rotation_range``), which replace the
-    checkpoint's (see :class:`~dpcn.models.DPCN`); ``None`` keeps one (``rotation_range=[-180,
-    180]`` is the full circle, no prior; ``inference_radii="trained"``: the radii the model was
-    trained with, whatever the checkpoint stores).
+    ``inference_radii``, ``inference_sigma``, ``rotation_range``, ``scale_range``), which
+    replace the checkpoint's (see :class:`~dpcn.models.DPCN`); ``None`` keeps one
+    (``rotation_range=[-180, 180]`` is the full circle, no prior; ``inference_radii="trained"``:
+    the radii the model was trained with, whatever the checkpoint stores).
     Raises :class:`CheckpointError` naming the problem for a missing, corrupt or foreign file.
     """
     settings = inference_settings(**settings)  # checked before the file is read
