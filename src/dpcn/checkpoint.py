@@ -33,7 +33,7 @@ __all__ = [
     "weight_differences",
 ]
 
-INFERENCE_SETTINGS = (  # DPCN's inference-only settings that a loader may replace
+INFERENCE_SETTINGS = (  # DPCN's settings that a loader may replace for inference (all inference-only but scale_range)
     "rotation_hypotheses",
     "hypothesis_ratio",
     "spectrum_window_grid",
