@@ -24,6 +24,7 @@ import hydra
 from omegaconf import DictConfig, OmegaConf
 
 from ._validate import check_int
+from .checkpoint import INFERENCE_SETTINGS
 
 if TYPE_CHECKING:
     from torch import Tensor
@@ -120,11 +121,9 @@ def _resolve_device(name: str) -> str:
     return name
 
 
-# Top-level keys that override a checkpoint's inference settings (validate/test/predict; fit ignores them).
-INFERENCE_KEYS = (
-    "rotation_hypotheses", "hypothesis_ratio", "spectrum_window_grid", "rotation_views", "unet_dtype",
-    "inference_radii", "inference_sigma", "rotation_range", "scale_range",
-)  # fmt: skip
+# Top-level keys that override a checkpoint's inference settings (validate/test/predict; fit
+# ignores them): the loaders' own list, so that a new setting reaches the command line once.
+INFERENCE_KEYS = INFERENCE_SETTINGS
 
 
 # The classical estimator's settings of the same name, where it has one.
