@@ -179,6 +179,21 @@ def test_match_in_chunks_equals_one_batch_and_still_checks_inputs():
         model.match(t, s, chunk_size=0)
 
 
+def test_match_gives_constant_pairs_confidence_zero_and_a_warning():
+    torch.manual_seed(3)
+    model = small_dpcn().double().eval()
+    t, s = torch.rand(3, 1, 32, 32, dtype=torch.float64), torch.rand(3, 1, 32, 32, dtype=torch.float64)
+    alone = model.match(t[:1], s[:1])
+    t[1] = 0.0  # an all-no-data template
+    s[2] = 0.5  # a blank source
+    with pytest.warns(UserWarning, match=r"2 of 3 pair\(s\) have a constant template or source") as caught:
+        pose = model.match(t, s)
+    assert caught[0].filename == __file__  # points at the caller, past torch.no_grad's wrapper
+    assert pose.confidence[1:].tolist() == [0.0, 0.0]
+    torch.testing.assert_close(pose[0].as_tensor(), alone.as_tensor(), atol=1e-8, rtol=1e-8)
+    assert float(pose.confidence[0]) == pytest.approx(float(alone.confidence[0])) and float(alone.confidence[0]) > 0
+
+
 def test_match_runs_in_eval_mode_and_gives_each_module_its_own_mode_back():
     """A training model with one U-Net held in eval (a frozen phase) matches in eval mode and
     comes back as it was: the frozen U-Net still in eval, the rest training."""

@@ -6,6 +6,7 @@ import json
 import os
 import subprocess
 import sys
+import warnings
 
 import cv2
 import numpy as np
@@ -154,6 +155,46 @@ def test_integer_and_bool_tensors_read_as_their_full_range(pair):
     )
     with pytest.raises(DpcnInputError, match="complex tensors are not images"):
         dpcn.register(torch.zeros(32, 32, dtype=torch.complex64), torch.zeros(32, 32))
+
+
+@pytest.mark.parametrize("dtype", [np.int16, np.int32, np.int64])
+def test_signed_and_wide_integer_images_read_as_values(pair, dtype):
+    # `.astype(int)` of an 8-bit image: its 0-255 values, not a sliver of the int64 range,
+    # which would round every pixel to one float32 and match nothing
+    template, source = (np.round(x * 255).astype(dtype) for x in pair)
+    check(dpcn.register(template, source))
+    check(dpcn.register(torch.from_numpy(template), torch.from_numpy(source)))
+    as_values = to_image_tensor(template)
+    expected = (template - template.min()) / float(template.max() - template.min())
+    torch.testing.assert_close(as_values[0, 0], torch.from_numpy(expected.astype(np.float32)))
+    batch = torch.from_numpy(np.stack([template, template // 2]))[:, None]  # each image its own range
+    torch.testing.assert_close(to_image_tensor(batch)[1], to_image_tensor(batch)[0], atol=0.01, rtol=0)
+    ones = np.ones((16, 16), dtype=dtype)  # already within [0, 1]: kept
+    assert to_image_tensor(ones).unique().tolist() == [1.0]
+
+
+def test_constant_pairs_get_confidence_zero_and_a_warning(pair):
+    template, source = (torch.from_numpy(x)[None, None] for x in pair)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a pair with structure gives no warning
+        alone = dpcn.register(template, source)
+    t, s = template.repeat(3, 1, 1, 1), source.repeat(3, 1, 1, 1)
+    t[1], s[2] = 0.0, 0.25
+    with pytest.warns(UserWarning, match=r"2 of 3 pair\(s\) have a constant template or source") as caught:
+        pose = dpcn.register(t, s)
+    assert caught[0].filename == __file__
+    assert pose.confidence[1:].tolist() == [0.0, 0.0]
+    check(pose[0])
+    assert float(pose.confidence[0]) == float(alone.confidence[0]) > 0.5
+
+
+def test_cli_predict_of_a_blank_image_says_so(tmp_path, pair):
+    cv2.imwrite(str(tmp_path / "t.png"), np.zeros((64, 64), np.uint8))
+    cv2.imwrite(str(tmp_path / "s.png"), (pair[1][:64, :64] * 255).astype(np.uint8))
+    out = run_cli("predict", "template=t.png", "source=s.png", cwd=tmp_path)
+    assert out.returncode == 0, out.stderr
+    assert json.loads(out.stdout)["confidence"] == 0.0
+    assert "1 of 1 pair(s) have a constant template or source" in out.stderr
 
 
 def run_cli(*args, cwd):

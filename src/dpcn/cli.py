@@ -168,7 +168,7 @@ def _pair_matcher(
     converted to the model's channels as the data sets convert them, or without ``ckpt_path``
     the classical estimator with the ``registration`` settings. Neither needs Lightning, whose
     import would double the command's start-up."""
-    from .io import prepare_pair
+    from .io import flag_featureless, prepare_pair
 
     if cfg.ckpt_path:
         from .checkpoint import load_model
@@ -182,7 +182,12 @@ def _pair_matcher(
 
         check_no_inference_overrides(_command_line())
         estimator = PhaseCorrelationEstimator(**OmegaConf.to_container(cfg.registration, resolve=True)).to(device)
-        match, check, channels = torch.no_grad()(estimator), estimator.check_inputs, None
+
+        @torch.no_grad()
+        def match(template: Tensor, source: Tensor) -> Pose:
+            return flag_featureless(estimator(template, source), template, source)
+
+        check, channels = estimator.check_inputs, None
 
     def prepare(template: object, source: object) -> tuple[Tensor, Tensor]:
         pair = prepare_pair(template, source, device, channels)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import cv2
@@ -9,9 +10,23 @@ import numpy as np
 import torch
 from torch import Tensor
 
-__all__ = ["DpcnInputError", "read_image", "load_image", "zero_no_data", "to_image_tensor", "to_grey", "prepare_pair"]
+from .pose import Pose
+
+__all__ = [
+    "DpcnInputError",
+    "read_image",
+    "load_image",
+    "zero_no_data",
+    "to_image_tensor",
+    "to_grey",
+    "prepare_pair",
+    "featureless_pairs",
+    "flag_featureless",
+]
 
 _MIN_SIZE = 8
+# Integer tensors read as images of that bit depth (torch.uint16 exists from torch 2.3 on).
+_BIT_DEPTHS = {torch.uint8: 255.0, **({torch.uint16: 65535.0} if hasattr(torch, "uint16") else {})}
 
 
 class DpcnInputError(ValueError):
@@ -63,9 +78,7 @@ def read_image(path: str | Path) -> tuple[np.ndarray, np.ndarray | None]:
         values = image[finite]
         if values.size == 0:
             raise DpcnInputError(f"{path}: no finite pixel values")
-        lo, hi = float(values.min()), float(values.max())
-        if lo < 0.0 or hi > 1.0:
-            image = (image - lo) / max(hi - lo, 1e-12)
+        image = _unit_range(image, float(values.min()), float(values.max()))
     if valid is not None:
         image = zero_no_data(image, valid)
     return np.ascontiguousarray(image), valid
@@ -89,12 +102,21 @@ def load_image(path: str | Path) -> np.ndarray:
     return _to_unit_float(image, str(path))
 
 
+def _unit_range(image: np.ndarray, lo: float, hi: float) -> np.ndarray:
+    """``image`` min-max normalised from ``[lo, hi]`` to ``[0, 1]``, unless already within it."""
+    return image if lo >= 0.0 and hi <= 1.0 else (image - lo) / max(hi - lo, 1e-12)
+
+
 def _to_unit_float(array: np.ndarray, name: str) -> np.ndarray:
     if array.dtype == np.bool_:
         return array.astype(np.float32)
+    if array.dtype in (np.uint8, np.uint16):  # 8- and 16-bit images: their full range
+        return array.astype(np.float32) / float(np.iinfo(array.dtype).max)
     if np.issubdtype(array.dtype, np.integer):
-        info = np.iinfo(array.dtype)
-        return (array.astype(np.float32) - min(info.min, 0)) / float(info.max - min(info.min, 0))
+        # Other integers are values, not a bit depth: int64 pixels of 0-255 (``.astype(int)``
+        # of an 8-bit image) over the int64 range would all round to one float32 value.
+        image = array.astype(np.float32)
+        return _unit_range(image, float(image.min()), float(image.max())) if image.size else image
     if np.issubdtype(array.dtype, np.floating):
         return array.astype(np.float32, copy=False)
     raise DpcnInputError(f"{name} has unsupported dtype {array.dtype} (need integer, bool or float pixels)")
@@ -104,7 +126,10 @@ def to_image_tensor(image: np.ndarray | Tensor, name: str = "image") -> Tensor:
     """Convert a numpy ``(H, W)``/``(H, W, C)`` array or a torch ``(H, W)``/``(C, H, W)``/
     ``(B, C, H, W)`` tensor into a floating ``(B, C, H, W)`` tensor, with checks.
 
-    Integer inputs are scaled to ``[0, 1]``; float tensors keep their dtype and device.
+    8- and 16-bit unsigned integers are read by their bit depth (``/ 255``, ``/ 65535``), bool
+    as 0 and 1; other integers (``int64`` from ``.astype(int)``, signed types) as values, as
+    :func:`read_image` reads such rasters: min-max normalised per image unless within
+    ``[0, 1]``. Float tensors keep their dtype, device and values.
     """
     if isinstance(image, (str, Path)):
         image = load_image(image)
@@ -133,8 +158,15 @@ def to_image_tensor(image: np.ndarray | Tensor, name: str = "image") -> Tensor:
                 tensor = tensor.float()
             elif tensor.is_complex():
                 raise DpcnInputError(f"{name}: complex tensors are not images")
+            elif tensor.dtype in _BIT_DEPTHS:
+                tensor = tensor.float() / _BIT_DEPTHS[tensor.dtype]
+            elif tensor.numel():  # other integers: values, min-max normalised per image (as arrays)
+                tensor = tensor.float()
+                lo, hi = tensor.amin(dim=(1, 2, 3), keepdim=True), tensor.amax(dim=(1, 2, 3), keepdim=True)
+                if bool((lo < 0).any() | (hi > 1).any()):
+                    tensor = (tensor - lo) / (hi - lo).clamp_min(1e-12)
             else:
-                tensor = tensor.float() / float(torch.iinfo(tensor.dtype).max)
+                tensor = tensor.float()
     else:
         raise DpcnInputError(f"{name}: expected a numpy array, torch tensor or file path, got {type(image).__name__}")
     if tensor.shape[0] == 0 or tensor.shape[1] == 0 or tensor.shape[-1] == 0 or tensor.shape[-2] == 0:
@@ -193,3 +225,33 @@ def prepare_pair(
     # then runs that image's U-Nets once.
     batch = max(t.shape[0], s.shape[0])
     return t.expand(batch, -1, -1, -1), s.expand(batch, -1, -1, -1)
+
+
+def featureless_pairs(template: Tensor, source: Tensor) -> Tensor:
+    """``(B,)`` bool: the pairs of two ``(B, C, H, W)`` batches whose template or source is
+    constant (a blank image, a crop that is all no-data), from which no pose can be read."""
+
+    def constant(images: Tensor) -> Tensor:
+        flat = images.flatten(1)
+        return flat.amax(dim=1) == flat.amin(dim=1)
+
+    return constant(template) | constant(source)
+
+
+def flag_featureless(pose: Pose, template: Tensor, source: Tensor, stacklevel: int = 3) -> Pose:
+    """``pose`` of the ``(B, C, H, W)`` pairs with confidence 0, and a warning, for the
+    :func:`featureless_pairs`: a matcher still returns a pose for them, an arbitrary one, and
+    the height of its correlation peak says nothing about it. ``stacklevel``: the warning's,
+    counted from this function (3: the caller's caller)."""
+    blank = featureless_pairs(template, source)
+    if not bool(blank.any()):
+        return pose
+    warnings.warn(
+        f"{int(blank.sum())} of {len(blank)} pair(s) have a constant template or source (e.g. all no-data): "
+        "nothing to match, so their pose is arbitrary and their confidence is set to 0",
+        UserWarning,
+        stacklevel=stacklevel,
+    )
+    confidence = pose.confidence if pose.confidence is not None else torch.ones_like(pose.tx)
+    pose.confidence = confidence.masked_fill(blank.to(confidence.device), 0.0)
+    return pose

@@ -50,7 +50,7 @@ from ..estimator import (
     unwarp_rotation_scale,
     window_grid_shifts,
 )
-from ..io import prepare_pair
+from ..io import flag_featureless, prepare_pair
 from ..ops._checks import check_pair, copies_of_one, full_precision, inputs_checked
 from ..ops.logpolar import log_polar_grid, log_radius_step
 from ..pose import Pose, wrap_angle
@@ -881,7 +881,8 @@ class DPCN(nn.Module):
 
         One template against many sources (a ``(1, C, H, W)`` template, or a batch expanded
         from one, as :func:`dpcn.io.prepare_pair` makes it): the template's U-Nets run once
-        for all the chunks.
+        for all the chunks. A pair whose template or source is constant gets confidence 0,
+        with a warning (:func:`dpcn.io.flag_featureless`).
         """
         device = self.rs_template.head.weight.device
         if not (isinstance(template, Tensor) and template.ndim == 4):
@@ -905,7 +906,8 @@ class DPCN(nn.Module):
             templates = [template] * len(sources) if shared else template.split(chunk_size)
             with inputs_checked():
                 features = self.template_features(template) if shared else None
-                return Pose.cat([self(t, s, features).pose for t, s in zip(templates, sources, strict=True)])
+                pose = Pose.cat([self(t, s, features).pose for t, s in zip(templates, sources, strict=True)])
         finally:
             for module in training:
                 module.training = True
+        return flag_featureless(pose, template, source, stacklevel=4)  # past torch.no_grad's wrapper

@@ -26,7 +26,7 @@ from ..checkpoint import (
     weight_differences,
 )
 from ..estimator import PhaseCorrelationEstimator, estimate_translation, unwarp_rotation_scale
-from ..io import prepare_pair
+from ..io import flag_featureless, prepare_pair
 from ..metrics import (
     accuracy_curve,
     format_table,
@@ -440,7 +440,7 @@ class ClassicalModule(_EvaluationMixin, L.LightningModule):
         if not (isinstance(template, Tensor) and template.ndim == 4):
             template, source = prepare_pair(template, source, self.device)
         with torch.no_grad():
-            return self.estimator(template, source)
+            return flag_featureless(self.estimator(template, source), template, source)
 
     def on_validation_epoch_start(self) -> None:
         self._reset()
