@@ -179,6 +179,18 @@ def test_match_in_chunks_equals_one_batch_and_still_checks_inputs():
         model.match(t, s, chunk_size=0)
 
 
+def test_match_takes_a_tensor_beside_an_array_and_integer_tensors():
+    torch.manual_seed(4)
+    model = small_dpcn().double().eval()
+    t, s = (np.random.default_rng(i).random((32, 32)) for i in (0, 1))
+    expected = model.match(torch.from_numpy(t)[None, None], torch.from_numpy(s)[None, None]).as_tensor()
+    # one side a (B, C, H, W) tensor, the other an array: both go through prepare_pair
+    torch.testing.assert_close(model.match(torch.from_numpy(t)[None, None], s).as_tensor(), expected)
+    torch.testing.assert_close(model.match(t, torch.from_numpy(s)[None, None]).as_tensor(), expected)
+    t8, s8 = (torch.from_numpy(np.round(x * 255).astype(np.uint8))[None, None] for x in (t, s))
+    torch.testing.assert_close(model.match(t8, s8).as_tensor(), model.match(t8 / 255.0, s8 / 255.0).as_tensor())
+
+
 def test_match_gives_constant_pairs_confidence_zero_and_a_warning():
     torch.manual_seed(3)
     model = small_dpcn().double().eval()

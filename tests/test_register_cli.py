@@ -173,6 +173,11 @@ def test_signed_and_wide_integer_images_read_as_values(pair, dtype):
     assert to_image_tensor(ones).unique().tolist() == [1.0]
 
 
+def test_register_on_a_device_this_machine_lacks(pair):
+    with pytest.raises(ValueError, match="device=cuda:99 requested but"):  # not torch's assertion
+        dpcn.register(*pair, device="cuda:99")
+
+
 def test_constant_pairs_get_confidence_zero_and_a_warning(pair):
     template, source = (torch.from_numpy(x)[None, None] for x in pair)
     with warnings.catch_warnings():

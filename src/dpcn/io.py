@@ -10,6 +10,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ._validate import check_device
 from .pose import Pose
 
 __all__ = [
@@ -20,6 +21,7 @@ __all__ = [
     "to_image_tensor",
     "to_grey",
     "prepare_pair",
+    "is_tensor_pair",
     "featureless_pairs",
     "flag_featureless",
 ]
@@ -219,12 +221,18 @@ def prepare_pair(
     if t.shape[0] != s.shape[0] and 1 not in (t.shape[0], s.shape[0]):
         raise DpcnInputError(f"template batch {t.shape[0]} and source batch {s.shape[0]} differ")
     dtype = torch.promote_types(t.dtype, s.dtype)
-    target = torch.device(device) if device is not None else s.device
+    target = check_device("device", device) if device is not None else s.device
     t, s = t.to(target, dtype), s.to(target, dtype)
     # Expanded after the conversion, so the batch stays a view of one image (stride 0): DPCN
     # then runs that image's U-Nets once.
     batch = max(t.shape[0], s.shape[0])
     return t.expand(batch, -1, -1, -1), s.expand(batch, -1, -1, -1)
+
+
+def is_tensor_pair(template: object, source: object) -> bool:
+    """Whether ``template`` and ``source`` are already floating ``(B, C, H, W)`` tensors, which
+    a matcher takes as they are; anything else goes through :func:`prepare_pair`."""
+    return all(isinstance(x, Tensor) and x.ndim == 4 and x.is_floating_point() for x in (template, source))
 
 
 def featureless_pairs(template: Tensor, source: Tensor) -> Tensor:

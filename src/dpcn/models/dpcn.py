@@ -50,7 +50,7 @@ from ..estimator import (
     unwarp_rotation_scale,
     window_grid_shifts,
 )
-from ..io import flag_featureless, prepare_pair
+from ..io import flag_featureless, is_tensor_pair, prepare_pair
 from ..ops._checks import check_pair, copies_of_one, full_precision, inputs_checked
 from ..ops.logpolar import log_polar_grid, log_radius_step
 from ..pose import Pose, wrap_angle
@@ -885,7 +885,7 @@ class DPCN(nn.Module):
         with a warning (:func:`dpcn.io.flag_featureless`).
         """
         device = self.rs_template.head.weight.device
-        if not (isinstance(template, Tensor) and template.ndim == 4):
+        if not is_tensor_pair(template, source):
             template, source = prepare_pair(template, source, device, channels=self.in_channels)
         template, source = template.to(device), source.to(device)
         if chunk_size is None:

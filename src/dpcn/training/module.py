@@ -26,7 +26,7 @@ from ..checkpoint import (
     weight_differences,
 )
 from ..estimator import PhaseCorrelationEstimator, estimate_translation, unwarp_rotation_scale
-from ..io import flag_featureless, prepare_pair
+from ..io import flag_featureless, is_tensor_pair, prepare_pair
 from ..metrics import (
     accuracy_curve,
     format_table,
@@ -437,7 +437,7 @@ class ClassicalModule(_EvaluationMixin, L.LightningModule):
         self._reset()
 
     def match(self, template: Tensor, source: Tensor) -> Pose:
-        if not (isinstance(template, Tensor) and template.ndim == 4):
+        if not is_tensor_pair(template, source):
             template, source = prepare_pair(template, source, self.device)
         with torch.no_grad():
             return flag_featureless(self.estimator(template, source), template, source)
