@@ -85,6 +85,10 @@ def test_warp_and_unwarp_reject_bad_input():
     flat = Pose.from_tensor(torch.tensor([[1.0, 0.0, 10.0, 0.0]]))
     with pytest.raises(ValueError, match="scale is not a finite number > 0"):
         unwarp_by_pose(torch.rand(1, 1, 8, 8), flat)
+    lost = Pose.from_tensor(torch.tensor([[1.0, 0.0, 10.0, 1.0], [float("nan"), 0.0, 10.0, 1.0]]))
+    for warp in (warp_by_pose, unwarp_by_pose):  # not an image of NaN
+        with pytest.raises(ValueError, match=r"NaN or infinite values: pose 1 of 2 is .*\(nan, 0.0, 10.0, 1.0\)"):
+            warp(torch.rand(2, 1, 8, 8), lost)
 
 
 def test_wrap_angle_range():

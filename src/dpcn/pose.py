@@ -194,7 +194,15 @@ def _warp_affine(image: Tensor, pose: Pose, inverse: bool, mode: str, padding_mo
     batch, _, height, width = check_image(image).shape
     if len(pose) != batch:
         raise ValueError(f"{len(pose)} poses for {batch} images: need one pose per image")
-    if inverse and not bool(((pose.scale > 0) & torch.isfinite(pose.scale)).all()):
+    values = pose.as_tensor()  # (B, 4): tx, ty, angle, scale
+    finite = torch.isfinite(values).all(dim=1)
+    if not bool(finite.all()):  # kornia would warp to an image of NaN without a word
+        first = int((~finite).nonzero()[0])
+        raise ValueError(
+            f"cannot warp by a pose with NaN or infinite values: pose {first} of {batch} is "
+            f"(tx, ty, angle, scale) = {tuple(values[first].tolist())}"
+        )
+    if inverse and not bool((pose.scale > 0).all()):
         raise ValueError(f"cannot un-warp by a pose whose scale is not a finite number > 0: {pose.scale.tolist()}")
     matrix = pose_to_matrix(
         *(t.to(image.device, image.dtype) for t in (pose.tx, pose.ty, pose.angle, pose.scale)),
