@@ -51,6 +51,16 @@ class TestSpectrum:
         assert half.shape == (16, 7)
         torch.testing.assert_close(half[:, :6], hp[:, 6:])
 
+    @pytest.mark.parametrize("make", [apodization_window, highpass_filter])
+    def test_window_and_filter_sizes_are_checked(self, make):
+        name = make.__name__
+        with pytest.raises(ValueError, match=f"{name} height must be an integer >= 1, got -1"):
+            make(-1, 8)  # not torch's "negative dimension"
+        with pytest.raises(ValueError, match=f"{name} width must be an integer >= 1, got 0"):
+            make(8, 0)
+        with pytest.raises(ValueError, match=f"{name} height must be an integer >= 1, got 8.0"):
+            make(8.0, 8)
+
     @pytest.mark.parametrize("size", [(32, 32), (21, 34)])
     def test_magnitude_is_shift_invariant(self, size):
         img = f64(2, 3, *size)

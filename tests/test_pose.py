@@ -111,6 +111,12 @@ def test_pose_container_api():
     assert json.loads(single.to_json())["tx"] == pytest.approx(1.0)
     assert len(json.loads(pose.to_json())) == 2
     assert Pose.from_dict(single.to_dict()).to_dict() == pytest.approx(single.to_dict())
+    defaults = Pose.from_dict({"tx": 1, "ty": 2, "angle": 3}).to_dict()
+    assert defaults == {"tx": 1.0, "ty": 2.0, "angle": 3.0, "scale": 1.0}
+    with pytest.raises(ValueError, match=r"missing \['ty', 'angle'\]"):  # not a KeyError
+        Pose.from_dict({"tx": 1.0})
+    with pytest.raises(ValueError, match="pose scale must be a number, got 'big'"):
+        Pose.from_dict({"tx": 1.0, "ty": 2.0, "angle": 3.0, "scale": "big"})
     with pytest.raises(ValueError, match="batch of one"):
         pose.to_dict()
     with pytest.raises(ValueError, match="different batch sizes"):

@@ -141,13 +141,22 @@ class Pose:
 
     @classmethod
     def from_dict(cls, d: Mapping[str, float]) -> Pose:
-        return cls(
-            torch.tensor([float(d["tx"])], dtype=torch.float64),
-            torch.tensor([float(d["ty"])], dtype=torch.float64),
-            torch.tensor([float(d["angle"])], dtype=torch.float64),
-            torch.tensor([float(d.get("scale", 1.0))], dtype=torch.float64),
-            None if d.get("confidence") is None else torch.tensor([float(d["confidence"])], dtype=torch.float64),
-        )
+        """One pose from ``{"tx", "ty", "angle"[, "scale"][, "confidence"]}`` (what
+        :meth:`to_dict` and ``predict`` write); ``ValueError`` naming a missing or non-numeric key."""
+        missing = [key for key in ("tx", "ty", "angle") if key not in d]
+        if missing:
+            raise ValueError(f"a pose needs the keys tx, ty, angle[, scale, confidence]; missing {missing}")
+
+        def number(key: str, default: float | None = None) -> Tensor | None:
+            value = d.get(key, default)
+            if value is None:
+                return None
+            try:
+                return torch.tensor([float(value)], dtype=torch.float64)
+            except (TypeError, ValueError):
+                raise ValueError(f"pose {key} must be a number, got {value!r}") from None
+
+        return cls(number("tx"), number("ty"), number("angle"), number("scale", 1.0), number("confidence"))
 
     def __repr__(self) -> str:
         rows = ", ".join("(" + ", ".join(f"{k}={v:.4g}" for k, v in row.items()) + ")" for row in self.tolist()[:4])

@@ -10,6 +10,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
+from .._validate import check_ints
 from ._checks import check_image, full_precision
 
 __all__ = [
@@ -30,6 +31,7 @@ def apodization_window(
     Multiplying an image by it before the DFT suppresses the spectral cross that the
     image borders would otherwise create (a cross does not rotate with the content).
     """
+    check_ints("apodization_window ", ("height", height, 1), ("width", width, 1))
     wy = (
         torch.hann_window(height, periodic=True, device=device, dtype=dtype)
         if height > 1
@@ -57,6 +59,7 @@ def highpass_filter(
     de-emphasises the low frequencies that dominate every natural image. ``half=True`` gives
     the ``(H, W // 2 + 1)`` filter for a half spectrum (see :func:`magnitude_spectrum`).
     """
+    check_ints("highpass_filter ", ("height", height, 1), ("width", width, 1))
     fy = torch.fft.fftshift(torch.fft.fftfreq(height, device=device, dtype=dtype))
     if half:
         fx = torch.fft.rfftfreq(width, device=device, dtype=dtype)
