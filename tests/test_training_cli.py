@@ -630,6 +630,8 @@ def test_predict_with_a_checkpoint(trained, tmp_path):
         (["test", "model=classical", "registration.resolve_180=1"], "resolve_180 must be true or false, got 1"),
         (["test", "model=classical", "registration.refine=abc"], "refine must be an integer >= 0, got 'abc'"),
         (["make-data", "out=scenes", "n_scenes=abc"], "n_scenes must be an integer >= 1, got 'abc'"),
+        (["make-data", "out=corrupt.ckpt"], "out=corrupt.ckpt is a file, not a folder"),  # not NotADirectoryError
+        (["make-data", "out=corrupt.ckpt/maps"], "cannot create out=corrupt.ckpt/maps: Not a directory"),
         (["fit", "trainer=gpu"], "trainer.accelerator=gpu: this machine has no GPU that torch can use"),
     ],
 )

@@ -631,8 +631,14 @@ def run_make_data(cfg: DictConfig) -> None:
     if not cfg.out:
         raise CliError("make-data needs out=DIR")
     out = Path(cfg.out)
+    if out.exists() and not out.is_dir():
+        raise CliError(f"out={out} is a file, not a folder")
     if out.exists() and any(out.iterdir()):
         raise CliError(f"{out} exists and is not empty; choose a new folder")
+    try:  # before minutes of rendering, not after
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as error:
+        raise CliError(f"cannot create out={out}: {error.strerror or error}") from None
     size = cfg.scene_size
     size = [size, size] if isinstance(size, (int, float)) else list(size)
     if len(size) != 2 or not all(isinstance(v, int) and v > 0 for v in size):
