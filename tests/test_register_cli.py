@@ -219,6 +219,19 @@ def test_cli_predict_prints_json(tmp_path, pair):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["s.png", "t.png"]  # a query leaves no run directory
 
 
+def test_cli_predict_writes_one_pose_to_out(tmp_path, pair):
+    template, source = pair
+    cv2.imwrite(str(tmp_path / "t.png"), (template * 255).astype(np.uint8))
+    cv2.imwrite(str(tmp_path / "s.png"), (source * 255).astype(np.uint8))
+    out = run_cli("predict", "template=t.png", "source=s.png", "out=pose.json", cwd=tmp_path)
+    assert out.returncode == 0 and out.stdout == "", out.stderr  # out= was ignored before: the JSON went to stdout
+    assert "pose written to pose.json" in out.stderr
+    check(dpcn.Pose.from_dict(json.loads((tmp_path / "pose.json").read_text())))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["pose.json", "s.png", "t.png"]  # no partial file left
+    missing = run_cli("predict", "template=t.png", "source=s.png", "out=nowhere/pose.json", cwd=tmp_path)
+    assert missing.returncode == 2 and "out=nowhere/pose.json: folder nowhere does not exist" in missing.stderr
+
+
 @pytest.mark.parametrize(
     "args,message",
     [

@@ -45,8 +45,8 @@ commands: {commands}
       trains DPCN; run directory outputs/fit/<time>/ (checkpoints/, metrics.csv, .hydra/)
   validate|test ckpt_path=model.ckpt [data=...]     (or model=classical, no checkpoint)
       prints the paper's metrics table and writes metrics_<stage>.csv in the run directory
-  predict template=A.png source=B.png [ckpt_path=model.ckpt]
-      prints {{"tx", "ty", "angle", "scale", "confidence"}} as JSON
+  predict template=A.png source=B.png [out=pose.json] [ckpt_path=model.ckpt]
+      prints {{"tx", "ty", "angle", "scale", "confidence"}} as JSON (stdout, or out=FILE)
   predict pairs=DIR/pairs.csv [out=poses.csv] [ckpt_path=model.ckpt]
       the pose of every pair the CSV names (images DIR/template/<name>.png, DIR/source/<name>.png),
       as CSV rows name,tx,ty,angle,scale,confidence (stdout, or out=FILE)
@@ -207,10 +207,31 @@ def run_predict(cfg: DictConfig) -> None:
         return
     if not cfg.template or not cfg.source:
         raise CliError("predict needs template=PATH and source=PATH (or pairs=CSV)")
+    out = _output_file(cfg)
     device = _resolve_device(str(cfg.device))
     template, source = load_image(cfg.template), load_image(cfg.source)
     match, prepare = _pair_matcher(cfg, device)
-    print(match(*prepare(template, source)).to_json())
+    pose = match(*prepare(template, source)).to_json()
+    if out is None:
+        print(pose)
+    else:
+        _write_whole(out, pose + "\n")
+        print(f"pose written to {out}", file=sys.stderr)
+
+
+def _output_file(cfg: DictConfig) -> Path | None:
+    """``predict``'s ``out=FILE`` (``None``: stdout), its folder checked before any work."""
+    out = Path(cfg.out) if cfg.out else None
+    if out is not None and not out.parent.is_dir():
+        raise CliError(f"out={out}: folder {out.parent} does not exist")
+    return out
+
+
+def _write_whole(out: Path, text: str) -> None:
+    """``text`` into ``out``, written whole or not at all (a partial file, then a rename)."""
+    partial = out.with_name(f".{out.name}.partial")
+    partial.write_text(text)
+    os.replace(partial, out)
 
 
 def _predict_pairs(cfg: DictConfig) -> None:
@@ -228,9 +249,7 @@ def _predict_pairs(cfg: DictConfig) -> None:
     device = _resolve_device(str(cfg.device))
     rows = CsvPairs(cfg.pairs, poses=False).rows  # names and image paths, checked up front
     match, prepare = _pair_matcher(cfg, device)
-    out = Path(cfg.out) if cfg.out else None
-    if out is not None and not out.parent.is_dir():
-        raise CliError(f"out={out}: folder {out.parent} does not exist")
+    out = _output_file(cfg)
     stream = io.StringIO() if out is not None else sys.stdout
     writer = csv.writer(stream, lineterminator="\n")
     writer.writerow(["name", "tx", "ty", "angle", "scale", "confidence"])
@@ -256,10 +275,8 @@ def _predict_pairs(cfg: DictConfig) -> None:
             flush()
     if batch:
         flush()
-    if out is not None:  # written whole or not at all
-        partial = out.with_name(f".{out.name}.partial")
-        partial.write_text(stream.getvalue())
-        os.replace(partial, out)
+    if out is not None:
+        _write_whole(out, stream.getvalue())
         print(f"poses of {len(rows)} pairs written to {out}", file=sys.stderr)
 
 
