@@ -121,6 +121,9 @@ def test_pose_container_api():
         pose.to_dict()
     with pytest.raises(ValueError, match="different batch sizes"):
         Pose(torch.zeros(2), torch.zeros(3), torch.zeros(2), torch.ones(2))
+    with pytest.raises(TypeError, match="Pose.tx must be numbers .* got 'a'"):  # not torch's "new(): invalid data type"
+        Pose("a", 1.0, 2.0, 1.0)
+    assert Pose([0, 1], np.zeros(2), (0.0, 5.0), [1, 1]).angle.tolist() == [0.0, 5.0]
     with pytest.raises(ValueError, match=r"\(B, 4\)"):
         Pose.from_tensor(torch.zeros(2, 3))
 
@@ -147,6 +150,9 @@ def test_sample_poses_ranges_and_seed():
     torch.testing.assert_close(poses.as_tensor(), again.as_tensor())
     with pytest.raises(ValueError, match="invalid pose ranges"):
         sample_poses(3, scale=(1.2, 0.8))
+    with pytest.raises(ValueError, match="sample_poses n must be an integer >= 0, got -1"):  # not torch's
+        sample_poses(-1)
+    assert len(sample_poses(0)) == 0
 
 
 def test_pose_matrix_is_differentiable():

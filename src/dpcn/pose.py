@@ -25,6 +25,7 @@ import kornia
 import torch
 from torch import Tensor
 
+from ._validate import check_int
 from .ops._checks import check_image
 
 __all__ = [
@@ -69,7 +70,10 @@ class Pose:
             value = getattr(self, f.name)
             if value is None:
                 continue
-            value = torch.as_tensor(value)
+            try:
+                value = torch.as_tensor(value)
+            except (TypeError, ValueError, RuntimeError):
+                raise TypeError(f"Pose.{f.name} must be numbers (a tensor, array or list), got {value!r}") from None
             if value.ndim == 0:
                 value = value.reshape(1)
             if value.ndim != 1:
@@ -262,6 +266,7 @@ def sample_poses(
 ) -> Pose:
     """Draw ``n`` poses uniformly: ``tx, ty`` in ``±translation`` pixels (or a ``(low, high)``
     range), angle in ``[rotation[0], rotation[1])`` degrees, scale in ``[scale[0], scale[1]]``."""
+    check_int("sample_poses n", n, low=0)
     t_lo, t_hi = (-translation, translation) if isinstance(translation, (int, float)) else translation
     if not (t_lo <= t_hi and rotation[0] <= rotation[1] and 0 < scale[0] <= scale[1]):
         raise ValueError(f"invalid pose ranges: translation={translation}, rotation={rotation}, scale={scale}")
