@@ -97,10 +97,10 @@ def test_checkpoint_reloads_without_configs(trained):
     assert isinstance(pose, Pose) and len(pose) == 2
     matcher = load_matcher(ckpt)
     assert not matcher.training
-    torch.testing.assert_close(
-        matcher.match(torch.ones(1, 1, 32, 32), torch.ones(1, 1, 32, 32)).as_tensor().isfinite(),
-        torch.ones(1, 4, dtype=torch.bool),
-    )
+    with pytest.warns(UserWarning, match="constant template or source"):
+        blank = matcher.match(torch.ones(1, 1, 32, 32), torch.ones(1, 1, 32, 32))
+    torch.testing.assert_close(blank.as_tensor().isfinite(), torch.ones(1, 4, dtype=torch.bool))
+    assert blank.confidence.tolist() == [0.0]  # a pose, finite, flagged as holding nothing
 
 
 def _crashing_run(run_dir: Path, crash_after_step: int, *extra: str) -> None:
