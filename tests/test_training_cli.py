@@ -650,6 +650,23 @@ def test_bad_runs_fail_in_one_line(tmp_path, args, message):
     assert "Traceback" not in out.stderr
 
 
+def test_runs_started_together_get_their_own_run_directories(tmp_path):
+    """Two runs launched at once (one per GPU from a shell loop) in the default run directory,
+    outputs/<command>/<time>: with a time to the second they shared one folder and overwrote
+    each other's files."""
+    env = {k: v for k, v in os.environ.items() if k not in ("DPCN_DEBUG", "DPCN_COMMAND")}
+    command = [sys.executable, "-m", "dpcn", "test", "model=classical", *SMALL_DATA]
+    runs = [
+        subprocess.Popen(command, cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE) for _ in "ab"
+    ]
+    for run in runs:
+        _, err = run.communicate(timeout=300)
+        assert run.returncode == 0, err.decode()[-2000:]
+    folders = sorted((tmp_path / "outputs" / "test").iterdir())
+    assert len(folders) == 2 and all((f / "metrics_test.csv").is_file() for f in folders)
+    assert all(re.fullmatch(r"\d{4}-\d{2}-\d{2}_\d{2}-\d{2}-\d{2}_\d{6}", f.name) for f in folders), folders
+
+
 def test_the_classical_estimator_on_an_experiments_pairs(tmp_path):
     """experiment=paper_table1 merges DPCN settings into `model` (model.net...) and sets a
     checkpoint's rotation_views; the classical estimator leaves them out, in one log line,
