@@ -249,6 +249,28 @@ def test_csv_config(tmp_path):
     assert float(pairs[1]["angle"]) == pytest.approx(-40.0) and float(pairs[1]["err_rot"]) < 0.5
 
 
+def test_csv_pairs_of_mixed_sizes_fail_in_one_line_also_from_loader_workers(tmp_path):
+    rng = np.random.default_rng(0)
+    for name, t_size, s_size in (("a", 64, 64), ("b", 96, 96), ("c", 64, 80)):
+        for folder, size in (("template", t_size), ("source", s_size)):
+            (tmp_path / folder).mkdir(exist_ok=True)
+            cv2.imwrite(str(tmp_path / folder / f"{name}.png"), (rng.random((size, size)) * 255).astype(np.uint8))
+    (tmp_path / "mixed.csv").write_text("name,rotation,shift_x,shift_y\na,1,0,0\nb,1,0,0\n")
+    (tmp_path / "unequal.csv").write_text("name,rotation,shift_x,shift_y\nc,1,0,0\n")
+    cases = [
+        ("mixed.csv", "a batch mixes pairs of different sizes (64x64, 96x96, H x W): a data set's pairs must share"),
+        ("unequal.csv", "unequal.csv: 'c': template"),  # the pair's own check, raised in __getitem__
+    ]
+    for name, message in cases:
+        for workers in ("0", "2"):  # 2, the configs' default: torch re-raises with the worker's traceback
+            out = dpcn("test", "model=classical", "data=csv", f"data.test_csv={name}", f"data.num_workers={workers}",
+                       "trainer.enable_progress_bar=false", f"hydra.run.dir={tmp_path / 'run'}", cwd=tmp_path,
+                       check=False)  # fmt: skip
+            lines = [line for line in out.stderr.splitlines() if line.startswith("dpcn test: error: ")]
+            assert out.returncode == 2 and len(lines) == 1 and message in lines[0], out.stderr[-2000:]
+            assert "Traceback" not in lines[0] and "stack expects" not in out.stderr
+
+
 def test_make_data_cli(tmp_path):
     out = dpcn("make-data", f"out={tmp_path / 'maps'}", "n_scenes=1", "scene_size=640", "split_gap=0", cwd=tmp_path)
     assert "wrote 1 scenes (scene_a)" in out.stdout

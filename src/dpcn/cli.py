@@ -691,6 +691,10 @@ def one_line(error: BaseException) -> str:
     if isinstance(error, InstantiationException) and error.__cause__ is not None:
         error = error.__cause__  # the constructor's own message, not Hydra's wrapper
     text = str(error).split("Config search path:")[0]  # Hydra's lookup details: noise here
+    if text.startswith("Caught ") and "Original Traceback" in text:
+        # Raised in a DataLoader worker: torch re-raises it with the worker's whole traceback
+        # as its message; the error's own message is the traceback's last line, after its type.
+        text = text.rstrip().splitlines()[-1].partition(": ")[2] or text
     return " ".join(text.split()) or type(error).__name__
 
 

@@ -8,11 +8,12 @@ from typing import Any
 
 import lightning as L
 import torch
-from torch.utils.data import DataLoader, Dataset, Sampler
+from torch.utils.data import DataLoader, Dataset, Sampler, default_collate
 
 from .._validate import check_ints, check_number
+from .aeroground import DataError
 
-__all__ = ["EpochBlockSampler", "PairDataModule", "ResumableDataLoader"]
+__all__ = ["EpochBlockSampler", "PairDataModule", "ResumableDataLoader", "collate_pairs"]
 
 
 class EpochBlockSampler(Sampler[int]):
@@ -47,6 +48,19 @@ class EpochBlockSampler(Sampler[int]):
 
     def __len__(self) -> int:
         return len(range(self.rank, self.epoch_size, self.world_size))
+
+
+def collate_pairs(items: list[dict[str, torch.Tensor]]) -> dict[str, torch.Tensor]:
+    """``default_collate`` of pair items, with a :class:`DataError` that says what to do when
+    a batch mixes image sizes (torch's own says only that ``stack`` expects equal sizes)."""
+    sizes = sorted({tuple(item["template"].shape[-2:]) for item in items if "template" in item})
+    if len(sizes) > 1:
+        listed = ", ".join(f"{h}x{w}" for h, w in sizes)
+        raise DataError(
+            f"a batch mixes pairs of different sizes ({listed}, H x W): a data set's pairs must share one size "
+            "(data=csv: data.dataset.size=N resizes them all to N x N; or data.batch_size=1)"
+        )
+    return default_collate(items)
 
 
 class ResumableDataLoader(DataLoader):
@@ -190,6 +204,7 @@ class PairDataModule(L.LightningDataModule):
             batch_size=self.batch_size,
             sampler=sampler,
             num_workers=self.num_workers,
+            collate_fn=collate_pairs,
             pin_memory=torch.cuda.is_available(),
             persistent_workers=False,
             drop_last=split == "train",
