@@ -236,6 +236,11 @@ def test_csv_config(tmp_path):
     dm.setup("fit")
     item = dm.datasets["val"][1]
     torch.testing.assert_close(item["pose"], torch.tensor([0.5, 4.0, -40.0, 1.0]))
+    small = instantiate(compose_config("data=csv", f"data.train_csv={csv}", f"data.val_csv={csv}").data)
+    small.setup("fit")  # 2 pairs, batches of 8: Lightning trained 0 steps, and the CLI named a last.ckpt never written
+    with pytest.raises(DataError, match=r"gives 2 pair\(s\) per epoch, fewer than one batch of data.batch_size=8"):
+        small.train_dataloader()
+    assert len(small.val_dataloader()) == 1  # evaluation keeps its partial batch
     cfg = compose_config("data=csv")
     with pytest.raises(DataError, match="needs the ground-truth CSV of each split .* data.test_csv to test"):
         instantiate(cfg.data).setup("fit")

@@ -650,6 +650,12 @@ def test_bad_runs_fail_in_one_line(tmp_path, args, message):
     assert "Traceback" not in out.stderr
 
 
+def test_a_fit_of_no_steps_names_no_checkpoint(tmp_path):
+    out = dpcn("fit", *SMALL, "+trainer.limit_train_batches=0", f"hydra.run.dir={tmp_path / 'r'}", cwd=tmp_path)
+    assert "(best: -, last: -)" in out.stdout  # it named a last.ckpt that was never written
+    assert not (tmp_path / "r" / "checkpoints" / "last.ckpt").exists()
+
+
 def test_runs_started_together_get_their_own_run_directories(tmp_path):
     """Two runs launched at once (one per GPU from a shell loop) in the default run directory,
     outputs/<command>/<time>: with a time to the second they shared one folder and overwrote

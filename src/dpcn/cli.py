@@ -566,7 +566,8 @@ def run_fit(cfg: DictConfig) -> None:
         raise _interrupted(run_dir, signal_name) from None
     if trainer.global_rank == 0:
         best = next((c.best_model_path for c in trainer.checkpoint_callbacks if c.monitor), "")
-        print(f"checkpoints: {run_dir / 'checkpoints'} (best: {Path(best).name if best else '-'}, last: last.ckpt)")
+        last = "last.ckpt" if (run_dir / "checkpoints" / "last.ckpt").is_file() else "-"  # none after 0 steps
+        print(f"checkpoints: {run_dir / 'checkpoints'} (best: {Path(best).name if best else '-'}, last: {last})")
         table = module.report("val", f"{datamodule.name} (val, last epoch)", run_dir)
         if table:
             print(table)

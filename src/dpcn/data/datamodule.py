@@ -194,6 +194,13 @@ class PairDataModule(L.LightningDataModule):
         dataset = self.build(split)
         rank, world = (self.trainer.global_rank, self.trainer.world_size) if self.trainer is not None else (0, 1)
         sampler = EpochBlockSampler(len(dataset), epoch_size, rank, world)
+        if split == "train" and len(sampler) < self.batch_size:  # Lightning would train 0 steps and say so in a warning
+            per = f" per epoch on each of {world} processes" if world > 1 else " per epoch"
+            raise DataError(
+                f"the training set gives {len(sampler)} pair(s){per}, fewer than one batch of "
+                f"data.batch_size={self.batch_size} (training drops a partial batch): lower data.batch_size "
+                "or give it more pairs"
+            )
         extra: dict[str, Any] = {}
         if split == "train" and self.trainer is not None:
             progress = self.trainer.fit_loop.epoch_loop.batch_progress
