@@ -548,6 +548,13 @@ def test_fine_tuning_starts_from_the_weights_and_keeps_the_frozen_phase(trained,
     assert f"init_from={init}: its network is not this model's (" in out.stderr
     assert "rs_template.head.weight is (4, 2, 1, 1) there, (2, 2, 1, 1) here" in out.stderr
     assert "Settings that differ: model.net.feature_channels 4 there, 2 here" in out.stderr
+    # So is resuming a run with another architecture (was Lightning's load_state_dict traceback).
+    last = tmp_path / "ft" / "checkpoints" / "last.ckpt"
+    out = dpcn("fit", *SMALL, "model.net.feature_channels=2", f"ckpt_path={last}", "trainer.max_epochs=3",
+               f"hydra.run.dir={tmp_path / 'bad2'}", cwd=tmp_path, check=False)  # fmt: skip
+    assert out.returncode == 2 and "Traceback" not in out.stderr and "HYDRA_FULL_ERROR" not in out.stderr
+    assert f"ckpt_path={last}: its network is not this model's (" in out.stderr
+    assert "model.net.feature_channels 4 there, 2 here. A run resumes with the settings it started with" in out.stderr
 
 
 def test_predict_with_a_checkpoint(trained, tmp_path):

@@ -546,9 +546,10 @@ def run_fit(cfg: DictConfig) -> None:
     if not isinstance(module, DPCNModule):
         raise CliError(f"fit trains a DPCN model; model={cfg.model._target_} has nothing to train")
     if cfg.ckpt_path:
-        from .training.module import load_matcher
+        from .training.module import check_resumable, load_matcher
 
         load_matcher(ckpt)  # a clear error now rather than a traceback from inside Lightning
+        check_resumable(module, ckpt)
     if cfg.get("init_from"):  # a resumed run (ckpt_path) then restores its own weights over these
         load_weights(module, cfg.init_from)
         log.info("starting from the weights of %s", cfg.init_from)

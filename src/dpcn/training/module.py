@@ -506,15 +506,40 @@ def load_weights(module: DPCNModule, ckpt_path: str | Path) -> DPCNModule:
         checkpoint = read_checkpoint(path)
     except CheckpointError as error:
         raise CheckpointError(f"init_from: {error}") from None
-    weights = {k[len("model.") :]: v for k, v in checkpoint["state_dict"].items() if k.startswith("model.")}
-    shown = weight_differences(module.model.state_dict(), weights)
-    if shown is not None:
-        # The settings behind the difference, from the two runs' configurations.
-        there = _tuples_as_lists(checkpoint["hyper_parameters"].get("net") or {})
-        here = _tuples_as_lists(module.hparams.get("net") or {})
-        keys = [k for k in sorted(set(there) | set(here)) if there.get(k) != here.get(k)]
-        settings = [f"model.net.{k} {there.get(k)} there, {here.get(k)} here" for k in keys]
-        hint = f". Settings that differ: {'; '.join(settings)}" if settings else ""
-        raise CheckpointError(f"init_from={path}: its network is not this model's ({shown}){hint}")
+    weights = _network_weights(checkpoint)
+    mismatch = _network_mismatch(module, checkpoint)
+    if mismatch is not None:
+        raise CheckpointError(f"init_from={path}: {mismatch}")
     module.model.load_state_dict(weights)
     return module
+
+
+def check_resumable(module: DPCNModule, ckpt_path: str | Path) -> None:
+    """:class:`CheckpointError` unless the run of checkpoint ``ckpt_path`` can resume into
+    ``module`` (``fit ckpt_path=…``): the same network, or Lightning fails deep in
+    ``load_state_dict`` with every tensor listed."""
+    path = Path(ckpt_path)
+    mismatch = _network_mismatch(module, read_checkpoint(path))
+    if mismatch is not None:
+        raise CheckpointError(
+            f"ckpt_path={path}: {mismatch}. A run resumes with the settings it started with "
+            "(its .hydra/overrides.yaml); init_from= starts a new run from weights that fit"
+        )
+
+
+def _network_weights(checkpoint: dict[str, Any]) -> dict[str, Tensor]:
+    return {k[len("model.") :]: v for k, v in checkpoint["state_dict"].items() if k.startswith("model.")}
+
+
+def _network_mismatch(module: DPCNModule, checkpoint: dict[str, Any]) -> str | None:
+    """Why ``checkpoint``'s network does not load into ``module``'s, in one line with the
+    settings behind it (from the two runs' configurations), or ``None`` when it does."""
+    shown = weight_differences(module.model.state_dict(), _network_weights(checkpoint))
+    if shown is None:
+        return None
+    there = _tuples_as_lists(checkpoint["hyper_parameters"].get("net") or {})
+    here = _tuples_as_lists(module.hparams.get("net") or {})
+    keys = [k for k in sorted(set(there) | set(here)) if there.get(k) != here.get(k)]
+    settings = [f"model.net.{k} {there.get(k)} there, {here.get(k)} here" for k in keys]
+    hint = f". Settings that differ: {'; '.join(settings)}" if settings else ""
+    return f"its network is not this model's ({shown}){hint}"
