@@ -657,6 +657,15 @@ def test_bad_runs_fail_in_one_line(tmp_path, args, message):
     assert "Traceback" not in out.stderr
 
 
+def test_evaluating_a_checkpoint_on_pairs_of_another_size_names_the_setting(trained, tmp_path):
+    ckpt = trained / "checkpoints" / "last.ckpt"
+    out = dpcn("test", f"ckpt_path={ckpt}", "data.test_length=4", "data.num_workers=0",
+               f"hydra.run.dir={tmp_path / 'r'}", cwd=tmp_path, check=False)  # fmt: skip
+    # the data config's own 256 x 256 pairs: the model's "resize or crop" did not say what to set
+    message = f"{ckpt} was trained on 32x32 pairs and data=sim_heterogeneous cuts 256x256 ones: add image_size=32"
+    assert out.returncode == 2 and message in out.stderr and "Traceback" not in out.stderr
+
+
 def test_a_fit_of_no_steps_names_no_checkpoint(tmp_path):
     out = dpcn("fit", *SMALL, "+trainer.limit_train_batches=0", f"hydra.run.dir={tmp_path / 'r'}", cwd=tmp_path)
     assert "(best: -, last: -)" in out.stdout  # it named a last.ckpt that was never written

@@ -588,6 +588,13 @@ def _run_evaluation(cfg: DictConfig, stage: str) -> None:
         module = load_matcher(ckpt, **inference_settings(cfg))
         module.translation_threshold = float(cfg.data.translation_threshold)
         name = f"DPCN {ckpt.name}"
+        built, cut = module.model.image_size, OmegaConf.select(cfg, "data.dataset.size")
+        square = built is not None and built[0] == built[1]
+        if square and cut == cfg.image_size and built != (cut, cut):  # data cut at image_size: say which to set
+            raise CliError(
+                f"{ckpt} was trained on {built[0]}x{built[1]} pairs and data={datamodule.name} cuts "
+                f"{cut}x{cut} ones: add image_size={built[0]}"
+            )
     else:
         module = _classical_module(cfg) if _is_classical(cfg) else instantiate(cfg.model, _convert_="all")
         if not isinstance(module, ClassicalModule):
