@@ -342,6 +342,9 @@ def test_cli_unknown_key_and_command(tmp_path):
     assert out.returncode == 2 and "unknown command 'frobnicate'" in out.stderr
     out = run_cli("--help", cwd=tmp_path)
     assert out.returncode == 0 and "predict" in out.stdout
+    for args in (("fit", "--help"), ("test", "data=l2d", "-h")):  # was Hydra's dump of the whole config
+        sub = run_cli(*args, cwd=tmp_path)
+        assert sub.returncode == 0 and sub.stdout == out.stdout and "Powered by Hydra" not in sub.stdout
 
 
 def test_cli_help_lists_every_config_of_each_group(tmp_path):

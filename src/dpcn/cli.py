@@ -55,7 +55,8 @@ commands: {commands}
       the layout that data=l2d|l2sat|s2d|s2sat data.root=DIR reads
   -m key=a,b ...   a Hydra multirun sweep (runs under multirun/<time>/<n>/)
 
-Any key of conf/config.yaml can be overridden with key=value (Hydra syntax).
+Any key of conf/config.yaml can be overridden with key=value (Hydra syntax); `<command> --cfg job`
+prints the composed configuration, --hydra-help Hydra's own flags.
 Errors are one line on stderr (exit status 2); DPCN_DEBUG=1 shows the traceback."""
 GROUPS = ("data", "model", "loss", "trainer", "experiment")  # the config groups the usage lists
 
@@ -793,6 +794,9 @@ def main(argv: list[str] | None = None) -> None:
     if command not in COMMANDS:
         print(f"dpcn: error: unknown command {command!r}; choose one of: {', '.join(COMMANDS)}", file=sys.stderr)
         sys.exit(2)
+    if any(arg in ("-h", "--help") for arg in overrides):  # Hydra's --help would dump the whole config
+        print(usage())
+        return
     try:
         conf = config_dir()
     except CliError as error:
