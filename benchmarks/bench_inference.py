@@ -209,6 +209,10 @@ def main(argv: list[str] | None = None) -> None:
         help="torch.compile the four U-Nets of each DPCN with this backend (default: inductor)",
     )
     args = parser.parse_args(argv)
+    unknown = [name for name in args.presets.split(",") if not (CONF / f"{name}.yaml").is_file()]
+    if unknown and not args.ckpt:
+        known = ", ".join(sorted(p.stem for p in CONF.glob("*.yaml") if p.stem != "classical"))
+        parser.error(f"--presets: no model config {', '.join(unknown)} (conf/model has {known})")
     if args.compile is not None and args.compile not in torch.compiler.list_backends(exclude_tags=()):
         parser.error(f"--compile: {args.compile!r} is not a torch.compile backend (torch.compiler.list_backends())")
     torch.set_num_threads(args.threads)

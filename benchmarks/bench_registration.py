@@ -105,17 +105,30 @@ def run_pairwise(fn, templates, sources, limit: int | None = None):
     return np.array(out), (time.perf_counter() - start) / n, n
 
 
+def positive_int(text: str) -> int:
+    """argparse type: an integer >= 1 (a usage error, not a traceback from deep in the run)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {value}")
+    return value
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--pairs", type=int, default=400)
-    parser.add_argument("--batch", type=int, default=64)
-    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--pairs", type=positive_int, default=400)
+    parser.add_argument("--batch", type=positive_int, default=64)
+    parser.add_argument("--threads", type=positive_int, default=2)
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument(
         "--window-grids", default="", help="also time dpcn with these spectrum_window_grid values, e.g. 3"
     )
-    parser.add_argument("--imreg-pairs", type=int, default=None, help="limit imreg_dft to this many pairs (slow)")
+    parser.add_argument(
+        "--imreg-pairs", type=positive_int, default=None, help="limit imreg_dft to this many pairs (slow)"
+    )
     parser.add_argument(
         "--decoupled", action="store_true", help="also dpcn with stage 1's decoupled (DPCN++) correlation"
     )

@@ -108,6 +108,10 @@ def test_chunk_sizes_time_the_same_model_chunked_differently(bench, capsys, monk
         (["--radii", "1"], "inference_radii must be an integer >= 2 or None, got 1"),
         (["--hypothesis-ratios", "2"], "hypothesis_ratio must be a finite number in [0, 1], got 2.0"),
         (["--ckpt", "no/such.ckpt"], "checkpoint not found: no/such.ckpt"),
+        (
+            ["--presets", "huge"],
+            "--presets: no model config huge (conf/model has paper, tiny, tiny_full, tiny_full_s2d)",
+        ),
         (["--rotation-range", "abc"], "argument --rotation-range: expected LOW,HIGH, got 'abc'"),
         (
             ["--compile", "nosuch"],

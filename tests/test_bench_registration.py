@@ -38,3 +38,11 @@ def test_prints_a_row_per_method_with_its_pair_count(bench, capsys):
     for row in rows.values():
         assert all(0.0 <= float(v) <= 100.0 for v in row[-9:-4])  # the five accuracies, in %
     assert any(line.startswith("speed-up of dpcn batched:") for line in lines)
+
+
+@pytest.mark.parametrize("args", [["--pairs", "-3"], ["--batch", "0"], ["--imreg-pairs", "x"]])
+def test_bad_counts_are_usage_errors(bench, capsys, args):
+    with pytest.raises(SystemExit) as exit_info:  # was a ValueError traceback from sample_poses
+        bench.main(args)
+    assert exit_info.value.code == 2
+    assert f"argument {args[0]}: expected an integer >= 1" in capsys.readouterr().err
