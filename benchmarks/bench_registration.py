@@ -13,8 +13,10 @@ from __future__ import annotations
 
 import argparse
 import math
+import sys
 import time
 import warnings
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -22,6 +24,9 @@ import torch
 
 from dpcn import PhaseCorrelationEstimator, sample_poses
 from dpcn.baselines import imreg_dft_similarity, opencv_fourier_mellin
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_inference import positive_int  # noqa: E402  (the benchmarks' argparse type for counts)
 
 PHOTOS = (
     "astronaut", "camera", "coffee", "chelsea", "rocket", "cat", "brick", "grass",
@@ -103,17 +108,6 @@ def run_pairwise(fn, templates, sources, limit: int | None = None):
         pose = fn(templates[i], sources[i])
         out.append([float(pose.tx[0]), float(pose.ty[0]), float(pose.angle[0]), float(pose.scale[0])])
     return np.array(out), (time.perf_counter() - start) / n, n
-
-
-def positive_int(text: str) -> int:
-    """argparse type: an integer >= 1 (a usage error, not a traceback from deep in the run)."""
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {value}")
-    return value
 
 
 def main(argv: list[str] | None = None) -> None:

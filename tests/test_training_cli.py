@@ -662,7 +662,10 @@ def test_evaluating_a_checkpoint_on_pairs_of_another_size_names_the_setting(trai
     out = dpcn("test", f"ckpt_path={ckpt}", "data.test_length=4", "data.num_workers=0",
                f"hydra.run.dir={tmp_path / 'r'}", cwd=tmp_path, check=False)  # fmt: skip
     # the data config's own 256 x 256 pairs: the model's "resize or crop" did not say what to set
-    message = f"{ckpt} was trained on 32x32 pairs and data=sim_heterogeneous cuts 256x256 ones: add image_size=32"
+    message = (
+        f"{ckpt}: this model was built for 32x32 images, got 256x256 "
+        "(data=sim_heterogeneous cuts its pairs at image_size=256): add image_size=32"
+    )
     assert out.returncode == 2 and message in out.stderr and "Traceback" not in out.stderr
 
 

@@ -593,8 +593,8 @@ def _run_evaluation(cfg: DictConfig, stage: str) -> None:
         square = built is not None and built[0] == built[1]
         if square and cut == cfg.image_size and built != (cut, cut):  # data cut at image_size: say which to set
             raise CliError(
-                f"{ckpt} was trained on {built[0]}x{built[1]} pairs and data={datamodule.name} cuts "
-                f"{cut}x{cut} ones: add image_size={built[0]}"
+                f"{ckpt}: this model was built for {built[0]}x{built[1]} images, got {cut}x{cut} "
+                f"(data={datamodule.name} cuts its pairs at image_size={cut}): add image_size={built[0]}"
             )
     else:
         module = _classical_module(cfg) if _is_classical(cfg) else instantiate(cfg.model, _convert_="all")
