@@ -123,6 +123,24 @@ def test_unet_rejects_bad_sizes():
         UNet(upsample="cubic")
 
 
+def test_unet_refuses_a_size_that_would_take_the_memory_before_allocating(monkeypatch):
+    import dpcn.models.unet as unet_module
+
+    # base_channels=4096 asked for 119 GiB: the process was killed for memory, without a word
+    monkeypatch.setattr(unet_module, "_MAX_WEIGHTS", 10_000)
+    with pytest.raises(ValueError, match=r"base_channels=8 and depth=3 would hold 1.*e\+05 weights .*fewer channels"):
+        UNet(1, 1, base_channels=8, depth=3)
+    assert UNet(1, 1, base_channels=2, depth=1) is not None  # 9 * (6 + 24 + 16) = 414 weights
+
+
+def test_dpcn_refuses_more_levels_than_halvings_of_its_images():
+    with pytest.raises(ValueError, match=r"model.net.depth=6 halves 32x32 maps 6 times, but 5 halvings reach 1x1"):
+        small_dpcn(depth=6, rotation_scale_depth=1)
+    with pytest.raises(ValueError, match=r"rotation_scale_depth=5 halves 16x16 maps .* at most 4 for image_size"):
+        small_dpcn(rotation_scale_depth=5, rotation_scale_downsample=2)
+    assert small_dpcn(depth=5, rotation_scale_depth=4, rotation_scale_downsample=2) is not None
+
+
 def test_half_turn_is_a_180_degree_rotation_about_the_pose_centre():
     image = photo("camera", (64, 64))
     expected = cv2_warp(image, 0.0, 0.0, 180.0, 1.0)

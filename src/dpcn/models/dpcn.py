@@ -349,6 +349,19 @@ class DPCN(nn.Module):
 
         rs_width = base_channels if rotation_scale_base_channels is None else rotation_scale_base_channels
         rs_levels = depth if rotation_scale_depth is None else rotation_scale_depth
+        if image_size is not None:  # deeper U-Nets only halve 1x1 maps again, at a width that doubles each time
+            side = min(image_size)
+            for name, levels, pixels in (
+                ("depth", depth, side),
+                ("rotation_scale_depth" if rotation_scale_depth is not None else "depth", rs_levels,
+                 side // rotation_scale_downsample),
+            ):  # fmt: skip
+                most = max(int(math.log2(pixels)), 0)
+                if levels > most:
+                    raise ValueError(
+                        f"model.net.{name}={levels} halves {pixels}x{pixels} maps {levels} times, but {most} "
+                        f"halvings reach 1x1: at most {most} for image_size={list(image_size)}"
+                    )
         rs_channels = in_channels * (rotation_scale_downsample**2 if rotation_scale_pooling == "space_to_depth" else 1)
         rs_template_width = rs_width if rotation_scale_template_channels is None else rotation_scale_template_channels
         relief = 1 if template_relief is None else 2  # the template's input channels, in images

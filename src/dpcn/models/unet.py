@@ -12,6 +12,8 @@ from .._validate import check_ints
 
 __all__ = ["UNet", "upsample2x_bilinear"]
 
+_MAX_WEIGHTS = 2**30  # 4 GiB of float32 weights for one U-Net; `paper`'s four hold 31 million in all
+
 
 class _GroupNorm(nn.GroupNorm):
     """GroupNorm that takes narrow channels-last CPU inputs through the channels-first kernel.
@@ -122,6 +124,16 @@ class UNet(nn.Module):
             ("depth", depth, 0),
         )
         widths = [base_channels * 2**i for i in range(depth + 1)]
+        # Two 3x3 convolutions per block: checked before allocating, as a typo (base_channels=4096)
+        # would otherwise take the machine's memory, and the process with it, without a word.
+        blocks = [(in_channels, widths[0])] + [(widths[i], widths[i + 1]) for i in range(depth)]
+        blocks += [(widths[i + 1] + widths[i], widths[i]) for i in range(depth)]
+        weights = sum(9 * (a * b + b * b) for a, b in blocks)
+        if weights > _MAX_WEIGHTS:
+            raise ValueError(
+                f"a U-Net of base_channels={base_channels} and depth={depth} would hold {weights:.3g} weights "
+                f"({4 * weights / 2**30:.0f} GiB in float32; at most {_MAX_WEIGHTS:.3g}): fewer channels or levels"
+            )
         self.stem = _block(in_channels, widths[0], norm)
         self.down = nn.ModuleList(_block(widths[i], widths[i + 1], norm) for i in range(depth))
         self.up = nn.ModuleList(_block(widths[i + 1] + widths[i], widths[i], norm) for i in reversed(range(depth)))
