@@ -669,6 +669,15 @@ def test_evaluating_a_checkpoint_on_pairs_of_another_size_names_the_setting(trai
     assert out.returncode == 2 and message in out.stderr and "Traceback" not in out.stderr
 
 
+def test_lightning_lines_are_printed_once_and_kept_in_the_run_log(tmp_path):
+    out = dpcn("fit", *SMALL, "trainer.enable_model_summary=true", f"hydra.run.dir={tmp_path / 'r'}", cwd=tmp_path)
+    printed = out.stdout + out.stderr
+    # Lightning's own stderr handler printed each of its lines a second time, the summary table too
+    assert printed.count("Seed set to 42") == 1 and printed.count("Total params") == 1, printed[-3000:]
+    log = (tmp_path / "r" / "fit.log").read_text()
+    assert "Seed set to 42" in log and "Total params" in log
+
+
 def test_a_fit_of_no_steps_names_no_checkpoint(tmp_path):
     out = dpcn("fit", *SMALL, "+trainer.limit_train_batches=0", f"hydra.run.dir={tmp_path / 'r'}", cwd=tmp_path)
     assert "(best: -, last: -)" in out.stdout  # it named a last.ckpt that was never written

@@ -532,6 +532,20 @@ def _interrupted(run_dir: Path, signal_name: str) -> RunInterrupted:
     )
 
 
+def _lightning_logs_once() -> None:
+    """Lightning's package logger has its own stderr handler, besides the root's that Hydra sets
+    up (the console and the run's log file), so every Lightning line (the model summary too)
+    was printed twice; the root's handlers stay, the log file keeps the lines."""
+    import lightning  # noqa: F401  (importing it adds the handler)
+
+    if not logging.getLogger().handlers:  # no Hydra logging (hydra/job_logging=none): keep Lightning's
+        return
+    logger = logging.getLogger("lightning")
+    for handler in list(logger.handlers):
+        if type(handler) is logging.StreamHandler:
+            logger.removeHandler(handler)
+
+
 def run_fit(cfg: DictConfig) -> None:
     import lightning as L
     from hydra.utils import instantiate
@@ -540,6 +554,7 @@ def run_fit(cfg: DictConfig) -> None:
     from .training.module import DPCNModule, load_weights
 
     ckpt = _check_ckpt(cfg.ckpt_path)
+    _lightning_logs_once()
     L.seed_everything(_seed(cfg), workers=True)
     run_dir = _run_dir()
     datamodule = instantiate(cfg.data)
@@ -581,6 +596,7 @@ def _run_evaluation(cfg: DictConfig, stage: str) -> None:
 
     from .training.module import ClassicalModule, load_matcher
 
+    _lightning_logs_once()
     L.seed_everything(_seed(cfg), workers=True)
     run_dir = _run_dir()
     datamodule = instantiate(cfg.data)
