@@ -532,30 +532,29 @@ def _interrupted(run_dir: Path, signal_name: str) -> RunInterrupted:
     )
 
 
-def _lightning_logs_once() -> None:
-    """Lightning's package logger has its own stderr handler, besides the root's that Hydra sets
-    up (the console and the run's log file), so every Lightning line (the model summary too)
-    was printed twice; the root's handlers stay, the log file keeps the lines."""
-    import lightning  # noqa: F401  (importing it adds the handler)
+def _start_lightning(cfg: DictConfig) -> None:
+    """What ``fit``, ``validate`` and ``test`` do first: Lightning's lines printed once, then
+    the seed. Lightning's package logger has its own stderr handler besides the root's that
+    Hydra sets up (the console and the run's log file), so every Lightning line (the model
+    summary too) was printed twice; the root's handlers stay, the log file keeps the lines."""
+    import lightning as L  # importing it adds the handler
 
-    if not logging.getLogger().handlers:  # no Hydra logging (hydra/job_logging=none): keep Lightning's
-        return
-    logger = logging.getLogger("lightning")
-    for handler in list(logger.handlers):
-        if type(handler) is logging.StreamHandler:
-            logger.removeHandler(handler)
+    if logging.getLogger().handlers:  # without Hydra's logging (hydra/job_logging=none), Lightning's stays
+        logger = logging.getLogger("lightning")
+        for handler in list(logger.handlers):
+            if type(handler) is logging.StreamHandler:
+                logger.removeHandler(handler)
+    L.seed_everything(_seed(cfg), workers=True)
 
 
 def run_fit(cfg: DictConfig) -> None:
-    import lightning as L
     from hydra.utils import instantiate
 
     from .training.checkpointing import stop_quiets_worker_deaths
     from .training.module import DPCNModule, load_weights
 
     ckpt = _check_ckpt(cfg.ckpt_path)
-    _lightning_logs_once()
-    L.seed_everything(_seed(cfg), workers=True)
+    _start_lightning(cfg)
     run_dir = _run_dir()
     datamodule = instantiate(cfg.data)
     module = instantiate(cfg.model, _convert_="all")
@@ -591,13 +590,11 @@ def run_fit(cfg: DictConfig) -> None:
 
 
 def _run_evaluation(cfg: DictConfig, stage: str) -> None:
-    import lightning as L
     from hydra.utils import instantiate
 
     from .training.module import ClassicalModule, load_matcher
 
-    _lightning_logs_once()
-    L.seed_everything(_seed(cfg), workers=True)
+    _start_lightning(cfg)
     run_dir = _run_dir()
     datamodule = instantiate(cfg.data)
     ckpt = _check_ckpt(cfg.ckpt_path)

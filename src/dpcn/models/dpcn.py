@@ -351,11 +351,9 @@ class DPCN(nn.Module):
         rs_levels = depth if rotation_scale_depth is None else rotation_scale_depth
         if image_size is not None:  # deeper U-Nets only halve 1x1 maps again, at a width that doubles each time
             side = min(image_size)
-            for name, levels, pixels in (
-                ("depth", depth, side),
-                ("rotation_scale_depth" if rotation_scale_depth is not None else "depth", rs_levels,
-                 side // rotation_scale_downsample),
-            ):  # fmt: skip
+            rs_name = "depth" if rotation_scale_depth is None else "rotation_scale_depth"
+            rs_side = side // rotation_scale_downsample
+            for name, levels, pixels in (("depth", depth, side), (rs_name, rs_levels, rs_side)):
                 most = max(int(math.log2(pixels)), 0)
                 if levels > most:
                     raise ValueError(
