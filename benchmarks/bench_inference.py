@@ -17,6 +17,7 @@ on the pairs and weights. Noise pairs are all ambiguous, so the default rows are
         [--unet-dtype bfloat16]                                   # DPCN.unet_dtype
         [--compile [BACKEND]]                                     # torch.compile the U-Nets (default inductor)
         [--rotation-range 0,180]                                  # also with DPCN.rotation_range (one phase-2 pass)
+        [--half-turn-passes winner,every]                         # DPCN.half_turn_pass
         [--one-template]                                          # also one template against the batch's sources
         [--chunks 2,4,8]                                          # DPCN.match's chunk_size (CPU default 4)
 
@@ -72,6 +73,7 @@ TIMED_SETTINGS = (  # the preset's architecture and its cost-bearing inference s
     "rotation_views",
     "inference_radii",
     "template_relief",
+    "half_turn_pass",
 )
 
 
@@ -188,6 +190,13 @@ def main(argv: list[str] | None = None) -> None:
         help="LOW,HIGH degrees: also time each DPCN with this rotation_range (<= 180 wide: one phase-2 pass)",
     )
     parser.add_argument(
+        "--half-turn-passes",
+        type=lambda text: text.split(","),
+        default=None,
+        help="comma-separated half_turn_pass values to time (winner: the turned source's U-Net pass only for a "
+        "turned winner; every: for every candidate)",
+    )
+    parser.add_argument(
         "--one-template",
         action="store_true",
         help="also time one template against the --batch sources in one call (its U-Nets run once)",
@@ -238,6 +247,7 @@ def main(argv: list[str] | None = None) -> None:
         ("rotation_views", args.views, "views"),
         ("inference_radii", args.radii, "radii"),
         ("rotation_range", args.rotation_range and [None, args.rotation_range], "range"),
+        ("half_turn_pass", args.half_turn_passes, "half-turn pass"),
     ):
         if values:  # one copy per value, same weights
             for label, model in list(models.items()):

@@ -593,7 +593,7 @@ def test_phase2_picks_the_rotation_hypothesis_with_a_translation_peak():
         angle, scale = torch.tensor(order), torch.full((3,), 1.1)
         unwarped = unwarp_rotation_scale(source.repeat(3, 1, 1, 1), angle, scale)
         with torch.no_grad():
-            tr, features, choice = model.translation(template, unwarped, angle, scale)
+            tr, features, choice, _ = model.translation(template, unwarped, angle, scale)
         true_index = next(i for i, a in enumerate(order) if a % 360.0 == 35.0 or a % 360.0 == 215.0)
         assert int(choice) == true_index
         assert angle_error(tr.angle, 35.0) < 1e-4  # a candidate off by a half-turn is turned back
@@ -620,7 +620,7 @@ def test_translation_turns_are_what_the_half_turn_check_compares():
         unwarped = unwarp_rotation_scale(source, angle, scale)
         with torch.no_grad():
             turns, ft, fs = model.translation_turns(template, unwarped, angle, scale)
-            chosen, _, _ = model.translation(template, unwarped, angle, scale)
+            chosen, _, _, _ = model.translation(template, unwarped, angle, scale)
             (upright_only,), _, _ = model.translation_turns(template, unwarped, angle, scale, half_turn_too=False)
             turned_features = model.t_source(half_turn(unwarped))
         assert len(turns) == 2 and len(fs) == 2 and ft.shape == (1, 1, 128, 128)
@@ -927,6 +927,66 @@ def test_a_known_rotation_range_settles_the_half_turn_with_one_phase2_pass():
         model.rotation_range = [0.0, 400.0]
     with pytest.raises(ValueError, match=r"rotation_range must be \[low, high\] in degrees"):
         small_dpcn(rotation_range=[5.0])
+
+
+@pytest.mark.parametrize(("hypotheses", "ratio"), [(1, 0.0), (2, 0.0), (2, 0.7)])
+def test_the_turned_source_runs_through_phase_2_only_for_turned_winners(hypotheses, ratio):
+    """``half_turn_pass="winner"`` compares the half-turns on the upright pass's
+    features turned, then gives only the winners that are turned their own source U-Net pass:
+    the poses that ``"every"`` (two passes per candidate) finds, on OpenCV poses of a real
+    photograph, two of them found turned by phase 1."""
+    torch.manual_seed(0)
+    image = photo("camera", (128, 128))
+    truths = [(6.0, -4.0, 145.0, 1.05), (-5.0, 3.0, -40.0, 0.95), (3.0, 7.0, -120.0, 1.0)]
+    template = torch.from_numpy(image)[None, None].repeat(len(truths), 1, 1, 1)
+    source = torch.cat([torch.from_numpy(cv2_warp(image, *t))[None, None] for t in truths])
+    model = DPCN(base_channels=2, depth=1, input_skip=True, image_size=(128, 128)).eval()
+    model.rotation_hypotheses, model.hypothesis_ratio = hypotheses, ratio
+    assert model.half_turn_pass == "every"  # the default
+    passes, poses = {"every": [], "winner": []}, {}
+    model.t_source.register_forward_hook(lambda module, args, out: passes[model.half_turn_pass].append(len(args[0])))
+    for mode in passes:
+        model.half_turn_pass = mode
+        with torch.no_grad():
+            poses[mode] = model.match(template, source)
+    first = len(truths) * (hypotheses if ratio == 0 else 1)  # the candidates of phase 2's first call
+    assert passes["every"][0] == 2 * first, passes  # each candidate upright and turned
+    # one upright image per candidate, then the two turned winners (145 and -120 degrees) alone
+    assert passes["winner"][0] == first and passes["winner"][-1] == 2, passes
+    assert sum(passes["winner"]) < sum(passes["every"]), passes
+    for mode, pose in poses.items():
+        for got, truth in zip(pose.angle, truths, strict=True):
+            assert angle_error(got, truth[2]) < 0.5, (mode, pose.angle)
+        assert (pose.tx - torch.tensor([t[0] for t in truths])).abs().max() < 1.0, (mode, pose.tx)
+        assert (pose.ty - torch.tensor([t[1] for t in truths])).abs().max() < 1.0, (mode, pose.ty)
+    torch.testing.assert_close(poses["winner"].as_tensor(), poses["every"].as_tensor())
+    torch.testing.assert_close(poses["winner"].confidence, poses["every"].confidence)
+    # A turned winner's own pass that peaks below the best upright candidate (here: blank
+    # features, no peak at all) gives the pair to that candidate: with one candidate, the
+    # turn phase 1 found.
+    model.half_turn_pass = "winner"
+    calls, winner_passes = [], list(passes["winner"])
+
+    def blank_turned_pass(module, args, out):
+        calls.append(len(args[0]))
+        return torch.zeros_like(out) if len(calls) == len(winner_passes) else None
+
+    with torch.no_grad():
+        hook = model.t_source.register_forward_hook(blank_turned_pass)
+        fallback = model.match(template, source)
+        hook.remove()
+    assert calls == winner_passes, calls  # the two turned winners' pass, which now peaks lower
+    for got, truth in zip(fallback.angle, truths, strict=True):
+        turned = abs(truth[2]) > 90.0  # 145 and -120 degrees: phase 1 finds -35 and 60
+        assert (angle_error(got, truth[2]) > 1.0) == turned, fallback.angle
+        if hypotheses == 1:
+            assert angle_error(got, truth[2] + 180.0 * turned) < 0.5, fallback.angle
+    assert float(fallback.confidence[1]) == float(poses["every"].confidence[1])  # the upright pair is unchanged
+    assert torch.all(fallback.confidence[[0, 2]] < poses["every"].confidence[[0, 2]])
+    with pytest.raises(ValueError, match="half_turn_pass must be one of winner, every, got 'both'"):
+        model.half_turn_pass = "both"
+    with pytest.raises(ValueError, match="half_turn_pass must be one of winner, every, got 'all'"):
+        small_dpcn(half_turn_pass="all")
 
 
 @pytest.mark.parametrize(("setting", "channels"), [("template", (2, 1)), ("both", (2, 2)), ("null", (1, 1))])

@@ -451,6 +451,7 @@ def test_validate_and_test_print_the_paper_table(trained, tmp_path):
         "inference_radii=16",
         "inference_sigma=2.5",
         "scale_range=[0.8,1.25]",
+        "half_turn_pass=winner",
     ]
     out = dpcn("test", *SMALL, f"ckpt_path={ckpt}", *inference, f"hydra.run.dir={tmp_path / 'k'}", cwd=tmp_path)
     assert "acc_rot@1" in out.stdout and (tmp_path / "k" / "metrics_test.csv").is_file()
@@ -468,6 +469,7 @@ def test_validate_and_test_print_the_paper_table(trained, tmp_path):
         inference_radii=24,
         inference_sigma=4.5,
         scale_range=(0.75, 1.5),
+        half_turn_pass="winner",
     )
     model = matcher.model
     assert (model.rotation_hypotheses, model.spectrum_window_grid, model.rotation_views) == (3, 5, 8)
@@ -477,6 +479,7 @@ def test_validate_and_test_print_the_paper_table(trained, tmp_path):
     assert model.inference_radii == 24 and load_matcher(ckpt).model.inference_radii == 128  # tiny's, stored
     assert model.inference_sigma == 4.5 and load_matcher(ckpt).model.inference_sigma == 3.0  # tiny's, stored
     assert model.scale_range == (0.75, 1.5) and load_matcher(ckpt).model.scale_range == (0.5, 2.0)  # tiny's, stored
+    assert model.half_turn_pass == "winner" and load_matcher(ckpt).model.half_turn_pass == "every"  # tiny's, stored
     assert load_matcher(ckpt, inference_radii="trained").model.inference_radii is None  # n_radii
     with pytest.raises(ValueError, match="inference_radii must be an integer >= 2 or 'trained', got 'all'"):
         load_matcher(ckpt, inference_radii="all")
@@ -491,6 +494,7 @@ def test_validate_and_test_print_the_paper_table(trained, tmp_path):
         ("inference_sigma=-1", "inference_sigma must be a finite number >= 0, got -1"),
         ("rotation_range=[180,0]", "rotation_range must be [low, high] in degrees with 0 < high - low <= 360"),
         ("scale_range=[1.2,2]", "scale_range must be [low, high] with 0 < low <= 1 <= high, got [1.2, 2]"),
+        ("half_turn_pass=some", "half_turn_pass must be one of winner, every, got 'some'"),
     ]:
         run = tmp_path / setting.split("=")[0]
         bad = dpcn("test", *SMALL, f"ckpt_path={ckpt}", setting, f"hydra.run.dir={run}", cwd=tmp_path, check=False)

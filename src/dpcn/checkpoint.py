@@ -43,6 +43,7 @@ INFERENCE_SETTINGS = (  # DPCN's settings that a loader may replace for inferenc
     "inference_sigma",
     "rotation_range",
     "scale_range",
+    "half_turn_pass",
 )
 
 
@@ -213,6 +214,7 @@ def load_model(
     inference_sigma: float | None = None,
     rotation_range: tuple[float, float] | list[float] | None = None,
     scale_range: tuple[float, float] | list[float] | None = None,
+    half_turn_pass: str | None = None,
 ) -> DPCN:
     """The trained :class:`~dpcn.models.DPCN` of a ``dpcn fit`` checkpoint, in eval mode on
     ``map_location``, without Lightning: ``load_model(path).match(template, source) -> Pose``.
@@ -233,6 +235,7 @@ def load_model(
         inference_sigma=inference_sigma,
         rotation_range=rotation_range,
         scale_range=scale_range,
+        half_turn_pass=half_turn_pass,
     )
     path = Path(ckpt_path)
     checkpoint = read_checkpoint(path, map_location)

@@ -5,12 +5,16 @@ source; magnitude spectra -> log-polar -> phase correlation -> rotation (mod 180
 and scale. Between the phases the source is un-rotated/un-scaled by that estimate with a
 kornia warp. Phase 2 (translation): U-Nets ``g1``/``g2`` -> phase correlation -> shift.
 
-The half-turn left open by phase 1 is settled in phase 2: the translation features are
-computed for the un-warped source and for its half-turn, and the stronger peak wins. (The
-conjugate-spectrum shortcut of the classical estimator does not apply here: a U-Net is not
-equivariant to half-turns.) With ``rotation_hypotheses = K > 1`` phase 2 checks the ``K``
-strongest phase-1 peaks the same way: a wrong rotation leaves no translation peak, so the
-strongest translation peak over the ``2 K`` candidates picks the pose; with
+The half-turn left open by phase 1 is settled in phase 2: the un-warped source's translation
+features and their half-turn are both correlated with the template's, and the stronger peak
+wins. A U-Net is nearly but not exactly equivariant to half-turns (so the conjugate-spectrum
+shortcut of the classical estimator does not apply), so a winner that is turned gets its own
+U-Net pass on the turned source, which places its peak and must still beat the strongest
+upright candidate (``half_turn_pass="winner"``; the default, ``"every"``, gives every
+candidate's turn its own pass). With
+``rotation_hypotheses = K > 1`` phase 2 checks the ``K`` strongest phase-1 peaks the same
+way: a wrong rotation leaves no translation peak, so the strongest translation peak over the
+``2 K`` candidates picks the pose; with
 ``hypothesis_ratio = r > 0`` only the pairs whose second phase-1 peak reaches ``r`` times
 their first (the ambiguous ones) pay for that check, the others keep their first peak. With
 ``spectrum_window_grid = n > 1`` phase 1 also takes the source's spectrum under an ``n x n``
@@ -59,6 +63,7 @@ from .unet import UNet
 __all__ = [
     "DPCN",
     "DPCNOutput",
+    "HALF_TURN_PASSES",
     "PHASE_UNETS",
     "ROTATION_SCALE_POOLING",
     "TEXTURE_ENERGY",
@@ -71,6 +76,9 @@ __all__ = [
 
 ROTATION_SCALE_POOLING = ("average", "space_to_depth")
 UNET_DTYPES = ("float32", "bfloat16")  # inference settings of DPCN.unet_dtype
+# Inference settings of DPCN.half_turn_pass: which candidates' half-turns get their own phase-2
+# source U-Net pass ("winner": only a winner that is turned; "every": each candidate's, before choosing).
+HALF_TURN_PASSES = ("winner", "every")
 # Each phase's two U-Nets (template, source), by attribute name.
 PHASE_UNETS = {"rotation_scale": ("rs_template", "rs_source"), "translation": ("t_template", "t_source")}
 
@@ -79,6 +87,46 @@ def half_turn(image: Tensor) -> Tensor:
     """Rotate ``(B, C, H, W)`` images by 180 degrees about ``(W / 2, H / 2)`` (circularly),
     exactly: pixel ``p`` goes to ``-p`` modulo the size."""
     return torch.roll(torch.flip(image, dims=(-2, -1)), shifts=(1, 1), dims=(-2, -1))
+
+
+def _with_rows(values: Tensor, rows: Tensor, new: Tensor) -> Tensor:
+    """A copy of ``values`` with ``values[rows] = new``."""
+    merged = values.clone()
+    merged[rows] = new
+    return merged
+
+
+def _replace_rows(tr: Translation, rows: Tensor, new: Translation, pick: Tensor | slice = slice(None)) -> Translation:
+    """``tr`` with its ``rows`` from ``new[pick]`` (field by field)."""
+    fields = ("tx", "ty", "angle", "confidence", "surface")
+    return Translation(*(_with_rows(getattr(tr, f), rows, getattr(new, f)[pick]) for f in fields))
+
+
+class _Pick(NamedTuple):
+    """Phase 2's chosen candidate per pair (all ``(B, ...)``): its translation, source
+    features, candidate index, whether it is the half-turned hypothesis, its un-warped source
+    and its score (the confidence, ``-inf`` where no allowed candidate was left)."""
+
+    tr: Translation
+    t_source: Tensor
+    choice: Tensor
+    turned: Tensor
+    unwarped: Tensor
+    score: Tensor
+
+
+def _pick_rows(pick: _Pick, rows: Tensor) -> _Pick:
+    """The ``rows`` of ``pick``."""
+    tr = Translation(*(getattr(pick.tr, f)[rows] for f in ("tx", "ty", "angle", "confidence", "surface")))
+    return _Pick(tr, *(field[rows] for field in pick[1:]))
+
+
+def _merge_picks(mine: _Pick, rows: Tensor, theirs: _Pick, take: Tensor) -> _Pick:
+    """``mine`` with its ``rows`` from ``theirs[take]`` (``take``: ``(len(rows),)`` bool)."""
+    won = rows[take]
+    tr = _replace_rows(mine.tr, won, theirs.tr, take)
+    fields = (_with_rows(a, won, b[take]) for a, b in zip(mine[1:], theirs[1:], strict=True))
+    return _Pick(tr, *fields)
 
 
 @full_precision  # under bf16 autocast the blur's rounding (~0.004 on 0-1 images) would pass the gain
@@ -211,8 +259,9 @@ class DPCN(nn.Module):
             settable on a loaded model, e.g. to the range a robot's and an aerial map's
             resolutions allow (a scale prior, like ``rotation_range``).
         rotation_hypotheses: phase-1 peaks (rotation/scale hypotheses) that phase 2 checks at
-            inference; each costs one more pair of phase-2 source U-Net passes. Training is
-            unaffected (phase 1 learns from its own surface).
+            inference; each costs two more phase-2 source U-Net passes (one with
+            ``half_turn_pass="winner"``). Training is unaffected (phase 1 learns from its own
+            surface).
         hypothesis_ratio: in ``[0, 1]``; with ``rotation_hypotheses > 1``, phase 2 checks a
             pair's further peaks only when its second phase-1 peak is at least this fraction
             of its first, and keeps the first peak of the other pairs (their pose is the one
@@ -258,6 +307,14 @@ class DPCN(nn.Module):
             degrees settles the half-turn that phase 1 leaves open, so phase 2 runs once
             instead of twice per candidate; a wider one only rules out turns outside it.
             ``None``: the full circle, phase 2 decides (settable on a loaded model).
+        half_turn_pass: inference only: which half-turns phase 2 runs its source U-Net on.
+            ``"every"``: each candidate's (two passes per candidate, as in training).
+            ``"winner"``: the turns are compared on the upright pass's features turned by
+            half a turn (a U-Net is nearly, not exactly, equivariant to the turn), and only
+            a winner that is turned gets its own pass, which places its peak and must still
+            beat the strongest upright candidate: one source pass per candidate plus one
+            per pair at most. Faster in batches, within half a point of ``"every"`` on the
+            test sets measured (README, Benchmarks); settable on a loaded model.
     """
 
     def __init__(
@@ -301,6 +358,7 @@ class DPCN(nn.Module):
         rotation_scale_correlation: str = "joint",
         rotation_range: tuple[float, float] | list[float] | None = None,
         radius_window: bool = False,
+        half_turn_pass: str = "every",
     ) -> None:
         super().__init__()
         # Config values by name (they may arrive as strings from the command line).
@@ -393,6 +451,7 @@ class DPCN(nn.Module):
         self.inference_radii = inference_radii
         self.inference_sigma = inference_sigma
         self.rotation_range = rotation_range
+        self.half_turn_pass = half_turn_pass
         if isinstance(train_temperature, (int, float, str)):
             train_temperature = (train_temperature, train_temperature)
         check_sequence("train_temperature", train_temperature, 2, "one number or two")
@@ -484,6 +543,18 @@ class DPCN(nn.Module):
     @rotation_range.setter
     def rotation_range(self, value: tuple[float, float] | list[float] | None) -> None:
         self._rotation_range = check_rotation_range(value)
+
+    @property
+    def half_turn_pass(self) -> str:
+        """Whose half-turn gets its own phase-2 source U-Net pass at inference (settable on
+        a loaded model): ``"winner"`` or ``"every"`` candidate (:data:`HALF_TURN_PASSES`)."""
+        return self._half_turn_pass
+
+    @half_turn_pass.setter
+    def half_turn_pass(self, value: str) -> None:
+        if value not in HALF_TURN_PASSES:
+            raise ValueError(f"half_turn_pass must be one of {', '.join(HALF_TURN_PASSES)}, got {value!r}")
+        self._half_turn_pass = value
 
     @property
     def unet_dtype(self) -> str:
@@ -674,10 +745,13 @@ class DPCN(nn.Module):
         half_turn_too: bool = True,
         template_features: Tensor | None = None,
         sigma: float | None = None,
+        turn_features: bool = False,
     ) -> tuple[list[Translation], Tensor, tuple[Tensor, ...]]:
         """Phase 2 per half-turn hypothesis, without choosing: the source as un-warped and,
         with ``half_turn_too``, turned by half a turn (its own source U-Net pass: a CNN is not
-        equivariant to the turn, so this is what the half-turn check compares).
+        equivariant to the turn, so this is what the half-turn check compares; with
+        ``turn_features``, the upright pass's features turned instead, which picks the turn
+        about as well for half the passes but places a turned peak up to a pixel off).
 
         Args:
             template: ``(B, C, H, W)``.
@@ -685,6 +759,8 @@ class DPCN(nn.Module):
                 ``K`` candidates per pair, pair-major.
             template_features: the template's phase-2 features if already computed.
             sigma: the surfaces' blur in pixels (``None``: the model's ``sigma``).
+            turn_features: the turned hypothesis from the upright features turned (no
+                second source U-Net pass).
 
         Returns:
             one :class:`Translation` ``(B * K,)`` per hypothesis (upright first; the second's
@@ -693,13 +769,35 @@ class DPCN(nn.Module):
         """
         k = unwarped_source.shape[0] // template.shape[0]
         ft = self.t_template(self.template_unet_input(template)) if template_features is None else template_features
-        turns = (unwarped_source, half_turn(unwarped_source)) if half_turn_too else (unwarped_source,)
-        fs_all = self.t_source(torch.cat(turns)).chunk(len(turns))
+        if half_turn_too and turn_features:
+            upright = self.t_source(unwarped_source)
+            fs_all: tuple[Tensor, ...] = (upright, half_turn(upright))
+        else:
+            turns = (unwarped_source, half_turn(unwarped_source)) if half_turn_too else (unwarped_source,)
+            fs_all = self.t_source(torch.cat(turns)).chunk(len(turns))
         ft_k = ft.repeat_interleave(k, dim=0) if k > 1 else ft
-        blur = self.sigma if sigma is None else sigma
-        kw = dict(resolve_180=False, sigma=blur, temperature=self.temperature, window=self.window)
-        results = [estimate_translation(ft_k, fs, angle + 180.0 * turn, scale, **kw) for turn, fs in enumerate(fs_all)]
+        results = [
+            self.translation_peak(ft_k, fs, angle + 180.0 * turn, scale, sigma) for turn, fs in enumerate(fs_all)
+        ]
         return results, ft, fs_all
+
+    def translation_peak(
+        self, template_features: Tensor, source_features: Tensor, angle: Tensor, scale: Tensor, sigma: float | None
+    ) -> Translation:
+        """Phase 2's correlation of given features, ``(N, C', H, W)`` each, for the pose
+        ``angle``/``scale`` ``(N,)`` they were un-warped by (``sigma``: the surfaces' blur in
+        pixels, ``None``: the model's ``sigma``)."""
+        blur = self.sigma if sigma is None else sigma
+        return estimate_translation(
+            template_features,
+            source_features,
+            angle,
+            scale,
+            resolve_180=False,
+            sigma=blur,
+            temperature=self.temperature,
+            window=self.window,
+        )
 
     def translation(
         self,
@@ -712,7 +810,8 @@ class DPCN(nn.Module):
         rotation_range: tuple[float, float] | None = None,
         template_features: Tensor | None = None,
         sigma: float | None = None,
-    ) -> tuple[Translation, dict[str, Tensor], Tensor]:
+        turn_features: bool = False,
+    ) -> tuple[Translation, dict[str, Tensor], Tensor, Tensor]:
         """Phase 2 on sources already un-warped by ``angle``/``scale``; the strongest
         translation peak over the candidates wins.
 
@@ -727,49 +826,92 @@ class DPCN(nn.Module):
                 range than the other turn's cannot win.
             template_features: the template's phase-2 features if already computed.
             sigma: the surfaces' blur in pixels (``None``: the model's ``sigma``).
+            turn_features: with ``resolve_180``, compare the turns on the upright features
+                and their half-turn (one source U-Net pass instead of two). A turned winner's
+                peak is then approximate; :meth:`forward` gives it its own pass and keeps it
+                only if it still beats the strongest upright candidate.
 
         Returns:
-            the winning :class:`Translation` ``(B,)``, the phase-2 features of the winner, and
-            ``(B,)`` the index of the winning candidate.
+            the winning :class:`Translation` ``(B,)``, the phase-2 features of the winner,
+            ``(B,)`` the index of the winning candidate and ``(B,)`` whether it won turned.
         """
+        ft, winner, _ = self._translation_picks(
+            template,
+            unwarped_source,
+            angle,
+            scale,
+            resolve_180,
+            valid,
+            rotation_range,
+            template_features,
+            sigma,
+            turn_features,
+        )
+        return winner.tr, {"t_template": ft, "t_source": winner.t_source}, winner.choice, winner.turned
+
+    def _translation_picks(
+        self,
+        template: Tensor,
+        unwarped_source: Tensor,
+        angle: Tensor,
+        scale: Tensor,
+        resolve_180: bool,
+        valid: Tensor | None,
+        rotation_range: tuple[float, float] | None,
+        template_features: Tensor | None,
+        sigma: float | None,
+        turn_features: bool,
+    ) -> tuple[Tensor, _Pick, _Pick | None]:
+        """:meth:`translation`'s work: the template's phase-2 features, the strongest allowed
+        candidate over both turns and, with ``turn_features``, the strongest upright one (the
+        fallback should the winner's own turned pass peak lower)."""
         batch = template.shape[0]
         k = unwarped_source.shape[0] // batch
         if k < 1 or unwarped_source.shape[0] != batch * k:
             raise ValueError(f"{unwarped_source.shape[0]} un-warped sources for {batch} templates (need B * K)")
         results, ft, fs_all = self.translation_turns(
-            template, unwarped_source, angle, scale, resolve_180, template_features, sigma
+            template, unwarped_source, angle, scale, resolve_180, template_features, sigma, turn_features
         )
+        turns = len(results)
 
         def candidates(values: list[Tensor]) -> Tensor:  # (B * K, ...) per turn -> (B, K * turns, ...)
             return torch.stack([v.view(batch, k, *v.shape[1:]) for v in values], dim=2).flatten(1, 2)
 
-        confidence = candidates([r.confidence for r in results])
-        allowed = None if valid is None else valid.repeat_interleave(len(results), dim=1)
-        if rotation_range is not None and len(results) == 2:
+        score = candidates([r.confidence for r in results])
+        allowed = None if valid is None else valid.repeat_interleave(turns, dim=1)
+        if rotation_range is not None and turns == 2:
             upright, turned = (outside_rotation_range(r.angle, rotation_range) for r in results)
             nearest = torch.minimum(upright, turned)
             turn_ok = candidates([upright == nearest, turned == nearest])
             allowed = turn_ok if allowed is None else allowed & turn_ok
         if allowed is not None:
-            confidence = confidence.masked_fill(~allowed, -torch.inf)
-        choice = confidence.argmax(dim=1)
-        rows = torch.arange(batch, device=choice.device)
+            score = score.masked_fill(~allowed, -torch.inf)
+        rows = torch.arange(batch, device=score.device)
+        per_candidate = {
+            field: candidates([getattr(r, field) for r in results])
+            for field in ("tx", "ty", "angle", "confidence", "surface")
+        }
+        sources, unwarped = candidates(list(fs_all)), unwarped_source.view(batch, k, *unwarped_source.shape[1:])
 
-        def pick(values: list[Tensor]) -> Tensor:
-            return candidates(values)[rows, choice]
+        def pick(scores: Tensor) -> _Pick:
+            choice = scores.argmax(dim=1)
+            candidate = torch.div(choice, turns, rounding_mode="floor")
+            tr = Translation(*(values[rows, choice] for values in per_candidate.values()))
+            return _Pick(
+                tr,
+                sources[rows, choice],
+                candidate,
+                choice % turns == 1,
+                unwarped[rows, candidate],
+                scores[rows, choice],
+            )
 
-        tr = Translation(
-            pick([r.tx for r in results]),
-            pick([r.ty for r in results]),
-            pick([r.angle for r in results]),
-            pick([r.confidence for r in results]),
-            pick([r.surface for r in results]),
-        )
-        return (
-            tr,
-            {"t_template": ft, "t_source": pick(list(fs_all))},
-            torch.div(choice, len(results), rounding_mode="floor"),
-        )
+        upright_only = None
+        if turn_features and turns == 2:
+            upright_only = pick(
+                score.masked_fill(torch.arange(score.shape[1], device=score.device) % 2 == 1, -torch.inf)
+            )
+        return ft, pick(score), upright_only
 
     def forward(
         self, template: Tensor, source: Tensor, template_features: TemplateFeatures | None = None
@@ -804,44 +946,51 @@ class DPCN(nn.Module):
             if settled:  # the range picks the half-turn: phase 2 runs on that one alone
                 angle = angle + 180.0 * choose_half_turn(angle, known).to(angle.dtype)
             valid = torch.isfinite(rs.candidate_score)
+            # "winner": the turns compared on the upright pass's features turned, then a turned
+            # winner's own pass (below), where "every" gives each candidate's turn its own pass.
+            lazy = not settled and not self.training and self.half_turn_pass == "winner"
 
-            def phase2(
-                rows: Tensor | slice, first: int, stop: int, ft: Tensor
-            ) -> tuple[Translation, dict[str, Tensor], Tensor, Tensor]:
-                """Phase 2 on candidates ``first:stop`` of the pairs ``rows``: the winner's
-                translation, features, candidate index and un-warped source."""
+            def phase2(rows: Tensor | slice, first: int, stop: int, ft: Tensor) -> tuple[_Pick, _Pick | None]:
+                """Phase 2 on candidates ``first:stop`` of the pairs ``rows``: the winner and,
+                when lazy, the strongest upright candidate (candidate indices from ``first``)."""
                 n = stop - first
                 candidates = source[rows].repeat_interleave(n, dim=0) if n > 1 else source[rows]
                 a, s = angle[rows, first:stop].flatten(), rs.candidate_scale[rows, first:stop].flatten()
                 unwarped = unwarp_rotation_scale(candidates, a, s)
                 allowed, blur = valid[rows, first:stop], self.inference_sigma
-                tr, t_features, choice = self.translation(
-                    template[rows], unwarped, a, s, not settled, allowed, known, ft, blur
+                _, *picks = self._translation_picks(
+                    template[rows], unwarped, a, s, not settled, allowed, known, ft, blur, lazy
                 )
-                picked = torch.arange(len(choice), device=choice.device)
-                return tr, t_features, choice + first, unwarped.view(-1, n, *unwarped.shape[1:])[picked, choice]
+                return tuple(None if p is None else p._replace(choice=p.choice + first) for p in picks)
 
             ft = template_features.translation
             if k == 1 or self.hypothesis_ratio == 0:  # every pair, all its candidates at once
-                tr, t_features, choice, unwarped = phase2(slice(None), 0, k, ft)
+                winner, upright = phase2(slice(None), 0, k, ft)
             else:  # every pair's first peak, then the further peaks of the ambiguous pairs
-                tr, t_features, choice, unwarped = phase2(slice(None), 0, 1, ft)
+                winner, upright = phase2(slice(None), 0, 1, ft)
                 rows = self.ambiguous_pairs(rs.candidate_score).nonzero().squeeze(1)
                 if len(rows):
-                    further = phase2(rows, 1, k, t_features["t_template"][rows])
-                    better = further[0].confidence > tr.confidence[rows]  # the strongest peak wins
-                    won = rows[better]
-
-                    def merge(first: Tensor, other: Tensor) -> Tensor:
-                        merged = first.clone()
-                        merged[won] = other[better]
-                        return merged
-
-                    fields = ("tx", "ty", "angle", "confidence", "surface")
-                    tr = Translation(*(merge(getattr(tr, f), getattr(further[0], f)) for f in fields))
-                    t_features = {**t_features, "t_source": merge(t_features["t_source"], further[1]["t_source"])}
-                    choice, unwarped = merge(choice, further[2]), merge(unwarped, further[3])
+                    further, further_upright = phase2(rows, 1, k, ft[rows])
+                    winner = _merge_picks(winner, rows, further, further.tr.confidence > winner.tr.confidence[rows])
+                    if upright is not None:
+                        upright = _merge_picks(
+                            upright, rows, further_upright, further_upright.score > upright.score[rows]
+                        )
+            rows = winner.turned.nonzero().squeeze(1) if lazy else None
+            if rows is not None and len(rows):  # a turned winner's own pass places its peak
+                fs = self.t_source(half_turn(winner.unwarped[rows]))
+                chosen = winner.choice[rows]
+                placed = self.translation_peak(
+                    ft[rows], fs, winner.tr.angle[rows], rs.candidate_scale[rows, chosen], self.inference_sigma
+                )
+                exact = _Pick(placed, fs, chosen, winner.turned[rows], winner.unwarped[rows], placed.confidence)
+                holds = placed.confidence >= upright.score[rows]  # else the turned features erred
+                winner = _merge_picks(winner, rows, exact, holds)
+                winner = _merge_picks(winner, rows, _pick_rows(upright, rows), ~holds)
+        tr, choice = winner.tr, winner.choice
         scale = rs.candidate_scale[torch.arange(template.shape[0], device=choice.device), choice]
+        t_features = {"t_template": ft, "t_source": winner.t_source}
+        unwarped = winner.unwarped
         pose = Pose(tr.tx, tr.ty, wrap_angle(tr.angle), scale, tr.confidence)
         return DPCNOutput(pose, rs, tr, unwarped, {**features, **t_features})
 

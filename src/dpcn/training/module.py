@@ -470,7 +470,8 @@ def load_matcher(ckpt_path: str | Path, map_location: str | torch.device = "cpu"
 
     ``settings`` are :func:`dpcn.load_model`'s inference settings (``rotation_hypotheses``,
     ``hypothesis_ratio``, ``spectrum_window_grid``, ``rotation_views``, ``unet_dtype``,
-    ``inference_radii``, ``inference_sigma``, ``rotation_range``, ``scale_range``), which
+    ``inference_radii``, ``inference_sigma``, ``rotation_range``, ``scale_range``,
+    ``half_turn_pass``), which
     replace the checkpoint's (see :class:`~dpcn.models.DPCN`); ``None`` keeps one
     (``rotation_range=[-180, 180]`` is the full circle, no prior; ``inference_radii="trained"``:
     the radii the model was trained with, whatever the checkpoint stores).
