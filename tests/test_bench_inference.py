@@ -74,6 +74,14 @@ def test_a_rotation_range_adds_a_variant_per_model(bench, capsys):
     assert labels == ["DPCN tiny, range=None", "DPCN tiny, range=(0.0, 180.0)", "classical (no U-Nets)"]
 
 
+def test_half_turn_passes_add_a_variant_per_model(bench, capsys):
+    args = ["--presets", "tiny", "--size", "64", "--batch", "2", "--rounds", "1"]
+    bench.main([*args, "--half-turn-passes", "every,winner"])
+    lines = capsys.readouterr().out.splitlines()
+    labels = [re.split(r"\s{2,}", line.strip())[0] for line in lines[2:] if line.strip()]
+    assert labels == ["DPCN tiny, half-turn pass=every", "DPCN tiny, half-turn pass=winner", "classical (no U-Nets)"]
+
+
 def test_gated_hypotheses_on_simulated_pairs(bench, capsys):
     args = ["--presets", "tiny", "--size", "64", "--batch", "2", "--rounds", "1", "--pairs", "heterogeneous"]
     bench.main([*args, "--hypotheses", "3", "--hypothesis-ratios", "0,0.7"])
@@ -113,6 +121,7 @@ def test_chunk_sizes_time_the_same_model_chunked_differently(bench, capsys, monk
             "--presets: no model config huge (conf/model has paper, tiny, tiny_full, tiny_full_s2d)",
         ),
         (["--rotation-range", "abc"], "argument --rotation-range: expected LOW,HIGH, got 'abc'"),
+        (["--half-turn-passes", "winner,some"], "half_turn_pass must be one of winner, every, got 'some'"),
         (
             ["--compile", "nosuch"],
             "--compile: 'nosuch' is not a torch.compile backend (torch.compiler.list_backends())",
