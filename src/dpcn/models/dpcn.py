@@ -5,16 +5,15 @@ source; magnitude spectra -> log-polar -> phase correlation -> rotation (mod 180
 and scale. Between the phases the source is un-rotated/un-scaled by that estimate with a
 kornia warp. Phase 2 (translation): U-Nets ``g1``/``g2`` -> phase correlation -> shift.
 
-The half-turn left open by phase 1 is settled in phase 2: the un-warped source's translation
-features and their half-turn are both correlated with the template's, and the stronger peak
-wins. A U-Net is nearly but not exactly equivariant to half-turns (so the conjugate-spectrum
-shortcut of the classical estimator does not apply), so a winner that is turned gets its own
-U-Net pass on the turned source, which places its peak and must still beat the strongest
-upright candidate (``half_turn_pass="winner"``; the default, ``"every"``, gives every
-candidate's turn its own pass). With
-``rotation_hypotheses = K > 1`` phase 2 checks the ``K`` strongest phase-1 peaks the same
-way: a wrong rotation leaves no translation peak, so the strongest translation peak over the
-``2 K`` candidates picks the pose; with
+The half-turn left open by phase 1 is settled in phase 2: the translation features are
+computed for the un-warped source and for its half-turn, and the stronger peak wins. (The
+conjugate-spectrum shortcut of the classical estimator does not apply here: a U-Net is not
+equivariant to half-turns.) With ``half_turn_pass="winner"`` the turns are compared on the
+upright features turned instead, which a U-Net's near-equivariance allows, and only a winner
+that is turned gets its own pass on the turned source, which places its peak and must still
+beat the strongest upright candidate. With ``rotation_hypotheses = K > 1`` phase 2 checks
+the ``K`` strongest phase-1 peaks the same way: a wrong rotation leaves no translation peak,
+so the strongest translation peak over the ``2 K`` candidates picks the pose; with
 ``hypothesis_ratio = r > 0`` only the pairs whose second phase-1 peak reaches ``r`` times
 their first (the ambiguous ones) pay for that check, the others keep their first peak. With
 ``spectrum_window_grid = n > 1`` phase 1 also takes the source's spectrum under an ``n x n``
@@ -29,6 +28,7 @@ hypothesis.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from typing import NamedTuple
@@ -96,10 +96,12 @@ def _with_rows(values: Tensor, rows: Tensor, new: Tensor) -> Tensor:
     return merged
 
 
+_TRANSLATION_FIELDS = tuple(field.name for field in dataclasses.fields(Translation))
+
+
 def _replace_rows(tr: Translation, rows: Tensor, new: Translation, pick: Tensor | slice = slice(None)) -> Translation:
     """``tr`` with its ``rows`` from ``new[pick]`` (field by field)."""
-    fields = ("tx", "ty", "angle", "confidence", "surface")
-    return Translation(*(_with_rows(getattr(tr, f), rows, getattr(new, f)[pick]) for f in fields))
+    return Translation(*(_with_rows(getattr(tr, f), rows, getattr(new, f)[pick]) for f in _TRANSLATION_FIELDS))
 
 
 class _Pick(NamedTuple):
@@ -117,7 +119,7 @@ class _Pick(NamedTuple):
 
 def _pick_rows(pick: _Pick, rows: Tensor) -> _Pick:
     """The ``rows`` of ``pick``."""
-    tr = Translation(*(getattr(pick.tr, f)[rows] for f in ("tx", "ty", "angle", "confidence", "surface")))
+    tr = Translation(*(getattr(pick.tr, f)[rows] for f in _TRANSLATION_FIELDS))
     return _Pick(tr, *(field[rows] for field in pick[1:]))
 
 
@@ -887,16 +889,13 @@ class DPCN(nn.Module):
         if allowed is not None:
             score = score.masked_fill(~allowed, -torch.inf)
         rows = torch.arange(batch, device=score.device)
-        per_candidate = {
-            field: candidates([getattr(r, field) for r in results])
-            for field in ("tx", "ty", "angle", "confidence", "surface")
-        }
+        per_candidate = [candidates([getattr(r, field) for r in results]) for field in _TRANSLATION_FIELDS]
         sources, unwarped = candidates(list(fs_all)), unwarped_source.view(batch, k, *unwarped_source.shape[1:])
 
         def pick(scores: Tensor) -> _Pick:
             choice = scores.argmax(dim=1)
             candidate = torch.div(choice, turns, rounding_mode="floor")
-            tr = Translation(*(values[rows, choice] for values in per_candidate.values()))
+            tr = Translation(*(values[rows, choice] for values in per_candidate))
             return _Pick(
                 tr,
                 sources[rows, choice],
