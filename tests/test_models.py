@@ -593,7 +593,7 @@ def test_phase2_picks_the_rotation_hypothesis_with_a_translation_peak():
         angle, scale = torch.tensor(order), torch.full((3,), 1.1)
         unwarped = unwarp_rotation_scale(source.repeat(3, 1, 1, 1), angle, scale)
         with torch.no_grad():
-            tr, features, choice, _ = model.translation(template, unwarped, angle, scale)
+            tr, features, choice = model.translation(template, unwarped, angle, scale)
         true_index = next(i for i, a in enumerate(order) if a % 360.0 == 35.0 or a % 360.0 == 215.0)
         assert int(choice) == true_index
         assert angle_error(tr.angle, 35.0) < 1e-4  # a candidate off by a half-turn is turned back
@@ -620,7 +620,7 @@ def test_translation_turns_are_what_the_half_turn_check_compares():
         unwarped = unwarp_rotation_scale(source, angle, scale)
         with torch.no_grad():
             turns, ft, fs = model.translation_turns(template, unwarped, angle, scale)
-            chosen, _, _, _ = model.translation(template, unwarped, angle, scale)
+            chosen, _, _ = model.translation(template, unwarped, angle, scale)
             (upright_only,), _, _ = model.translation_turns(template, unwarped, angle, scale, half_turn_too=False)
             turned_features = model.t_source(half_turn(unwarped))
         assert len(turns) == 2 and len(fs) == 2 and ft.shape == (1, 1, 128, 128)

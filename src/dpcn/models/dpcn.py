@@ -812,8 +812,7 @@ class DPCN(nn.Module):
         rotation_range: tuple[float, float] | None = None,
         template_features: Tensor | None = None,
         sigma: float | None = None,
-        turn_features: bool = False,
-    ) -> tuple[Translation, dict[str, Tensor], Tensor, Tensor]:
+    ) -> tuple[Translation, dict[str, Tensor], Tensor]:
         """Phase 2 on sources already un-warped by ``angle``/``scale``; the strongest
         translation peak over the candidates wins.
 
@@ -828,14 +827,10 @@ class DPCN(nn.Module):
                 range than the other turn's cannot win.
             template_features: the template's phase-2 features if already computed.
             sigma: the surfaces' blur in pixels (``None``: the model's ``sigma``).
-            turn_features: with ``resolve_180``, compare the turns on the upright features
-                and their half-turn (one source U-Net pass instead of two). A turned winner's
-                peak is then approximate; :meth:`forward` gives it its own pass and keeps it
-                only if it still beats the strongest upright candidate.
 
         Returns:
-            the winning :class:`Translation` ``(B,)``, the phase-2 features of the winner,
-            ``(B,)`` the index of the winning candidate and ``(B,)`` whether it won turned.
+            the winning :class:`Translation` ``(B,)``, the phase-2 features of the winner, and
+            ``(B,)`` the index of the winning candidate.
         """
         ft, winner, _ = self._translation_picks(
             template,
@@ -847,9 +842,9 @@ class DPCN(nn.Module):
             rotation_range,
             template_features,
             sigma,
-            turn_features,
+            turn_features=False,
         )
-        return winner.tr, {"t_template": ft, "t_source": winner.t_source}, winner.choice, winner.turned
+        return winner.tr, {"t_template": ft, "t_source": winner.t_source}, winner.choice
 
     def _translation_picks(
         self,
@@ -865,8 +860,9 @@ class DPCN(nn.Module):
         turn_features: bool,
     ) -> tuple[Tensor, _Pick, _Pick | None]:
         """:meth:`translation`'s work: the template's phase-2 features, the strongest allowed
-        candidate over both turns and, with ``turn_features``, the strongest upright one (the
-        fallback should the winner's own turned pass peak lower)."""
+        candidate over both turns and, with ``turn_features`` (the turns compared on the
+        upright features turned, :meth:`translation_turns`), the strongest upright one, which
+        :meth:`forward` falls back on should the winner's own turned pass peak lower."""
         batch = template.shape[0]
         k = unwarped_source.shape[0] // batch
         if k < 1 or unwarped_source.shape[0] != batch * k:
